@@ -58,8 +58,11 @@ class Worker:
         self.free_at = math.inf if lost else start + sum(self.seconds.get((self.pid, n), self.seconds.get(n, 1.0)) for n in names)
         if self.lost_after is not None:
             self.lost_after -= 1
-        raised = (self.errors.get((self.pid, n), self.errors.get(n)) for n in names)
-        return Call(names, self.free_at, next((e for e in raised if e is not None), None))
+        raised = [self.errors.get((self.pid, n), self.errors.get(n)) for n in names]
+        first = next((i for i, e in enumerate(raised) if e is not None), None)
+        call = Call(names, self.free_at, None if first is None else raised[first])
+        call.done = names if first is None else names[:first]  # the views computed before the failing one
+        return call
 
 
 class SimulatedRay:
@@ -87,8 +90,8 @@ class SimulatedRay:
         return [], refs
 
     def get(self, ref: Call):
-        if isinstance(ref.error, DrsplatError):  # as `_ViewWorker.compute`: a view's DrsplatError comes back in the result
-            return ray_executor._CallResult([], WorkerStats(pid=1), ref.error)
+        if isinstance(ref.error, DrsplatError):  # as `_ViewWorker.compute`: a view's DrsplatError comes back in the result,
+            return ray_executor._CallResult(list(ref.done), WorkerStats(pid=1), ref.error)  # with the views before it
         if ref.error is not None:
             raise ref.error
         return ray_executor._CallResult(list(ref.names), WorkerStats(pid=1))
@@ -101,7 +104,7 @@ class SimulatedRay:
 
 
 def run_views(monkeypatch, tmp_path, workers: int, views: int, seconds: dict, errors: dict | None = None,
-              lost: dict[int, int] | None = None, stall: float = 3.0):
+              lost: dict[int, int] | None = None, stall: float = 3.0, per_task: int = 1):
     """(the names view_pairs yielded, the error it raised or None, the simulated seconds it took)."""
     clock = Clock()
     fake = SimulatedRay(clock)
@@ -111,7 +114,7 @@ def run_views(monkeypatch, tmp_path, workers: int, views: int, seconds: dict, er
     executor = object.__new__(ray_executor.RayExecutor)
     executor._placed, executor._refs, executor._features_dir = True, [], tmp_path
     executor._actors = [Worker(i, clock, seconds, errors or {}, (lost or {}).get(i)) for i in range(workers)]
-    executor.views_per_task, executor.cancel, executor.worker_stats = 1, None, {}
+    executor.views_per_task, executor.cancel, executor.worker_stats = per_task, None, {}
     got: list[str] = []
     try:
         for name in executor.view_pairs([SimpleNamespace(name=f"v{i}") for i in range(views)]):
@@ -323,3 +326,19 @@ def test_a_stalled_call_with_no_worker_free_to_take_it_is_said_not_waited_on_in_
     assert error is None and got == ["v0", "v1"]
     said = [r for r in caplog.records if "no other worker is free to take them" in r.getMessage()]
     assert 2 <= len(said) <= 6, [r.getMessage() for r in said]  # ~700 s of waiting, one line a ~130 s period
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="drsplat"):  # one worker has no other (round 81a F3)
+        got, error, _ = run_views(monkeypatch, tmp_path, workers=1, views=2, seconds={"v0": 300.0}, stall=120.0)
+    assert error is None and got == ["v0", "v1"]
+    said = [r.getMessage() for r in caplog.records if "waited" in r.getMessage()]
+    assert said and all("the only worker (slow, or its node hung)" in m and "other worker" not in m for m in said), said
+
+
+def test_of_two_failed_copies_the_one_that_got_furthest_gives_its_views(monkeypatch, tmp_path):
+    """Round 81a F2: when both copies of a chunk failed, the first to answer was kept: a copy on a node without the
+    features failed at its first view, the original returned v0-v2 and the real error at v3; nothing was yielded and
+    the error named the node. Now the failed result with the most views: v0-v2 yielded (logged), then v3's error."""
+    seconds = {(0, f"v{i}"): 40.0 for i in range(4)}  # 160 s on worker 0: copied at ~130 s to worker 1
+    errors = {(1, "v0"): DrsplatError("features folder not visible on node 1"), (0, "v3"): DrsplatError("v3 is bad")}
+    got, error, took = run_views(monkeypatch, tmp_path, workers=2, views=4, seconds=seconds, errors=errors, stall=120.0, per_task=4)
+    assert got == ["v0", "v1", "v2"] and isinstance(error, DrsplatError) and "v3 is bad" in str(error), (got, error)

@@ -853,3 +853,19 @@ def test_the_near_plane_reads_at_most_its_sample_of_rows(rows, monkeypatch):
     camera.scene_near_plane(means, np.zeros((rows, 3), np.float32))
     assert len(read) == 1 and read[0] <= 4 and read[0] == (rows if rows <= 4 else -(-rows // -(-rows // 4)))
 
+
+
+def test_a_black_screenshot_is_judged_by_the_gaussians_its_mode_draws(state):
+    """Round 81a F1: the black-screenshot check counted every centre in view, also the ones `--mode selection` does not
+    draw, so a selection entirely off camera gave a black picture and no word. The check reads the drawn rows only."""
+    from viewer.launch import centres_in_view, drawn_means
+
+    assert state.run_oracle_query(0)
+    cam = state.cameras[1]
+    selected = state.selection.copy()
+    assert centres_in_view(drawn_means(state, "selection"), cam)  # the demo's selection is in view of camera 1
+    means = state.scene.means.copy()
+    means[selected] -= 50.0 * np.asarray(cam.R, np.float32)[2]  # the selection moved behind the camera
+    state.scene = dataclasses.replace(state.scene, means=means)
+    assert not centres_in_view(drawn_means(state, "selection"), cam)
+    assert centres_in_view(drawn_means(state, "hide_selection"), cam) and centres_in_view(drawn_means(state, "highlight"), cam)

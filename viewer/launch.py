@@ -270,11 +270,22 @@ def screenshot(args: argparse.Namespace, state) -> int:
     said_empty = wants_query and args.mode in ("selection", "hide_selection") and (not state.selection.any() if args.mode == "selection"
                                                                                    else state.selection.all())
     image = render_screenshot(state, camera, args.screenshot)
-    if image.size and not image.any() and not said_empty and not centres_in_view(state.scene.means, camera):  # background: black
+    drawn = drawn_means(state, args.mode if wants_query else "color")
+    if image.size and not image.any() and not said_empty and not centres_in_view(drawn, camera):  # the background is black
         log.warning("the screenshot is all background (black): no Gaussian is drawn from this camera (the scene lies behind it or "
                     "outside its view, or the scene and its cameras are in different frames); choose another --camera")  # round 79b F2
     log.info("wrote %s (%dx%d)", shown_path(args.screenshot), camera.width, camera.height)
     return 0
+
+
+def drawn_means(state, mode: str) -> np.ndarray:
+    """[M, 3] the centres of the Gaussians a picture in display `mode` draws: the selection alone, all but it, or all
+    (round 81a F1: a selection drawn off camera, its black picture had been taken for the scene's own colours)."""
+    if mode == "selection":
+        return state.scene.means[state.selection]
+    if mode == "hide_selection":
+        return state.scene.means[~state.selection]
+    return state.scene.means
 
 
 def centres_in_view(means: np.ndarray, camera, chunk: int = 1 << 20) -> bool:

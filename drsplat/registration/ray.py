@@ -356,7 +356,9 @@ class RayExecutor:
             once no copy is left to answer; while one runs its answer may come (round 78a F1: an error of one worker's
             node, as a features folder not mounted there, had been taken over the views another worker was computing),
             until `give_up_on_failed` says it waited long enough."""
-            failed.setdefault(chunk, (result, time.monotonic()))
+            kept = failed.setdefault(chunk, (result, time.monotonic()))
+            if len(result.views) > len(kept[0].views):  # the copy that got furthest: fewer views to compute again (round 81a F2)
+                failed[chunk] = (result, kept[1])
             if not copies(chunk):
                 finished[chunk] = failed[chunk][0]
                 settled.add(chunk)
@@ -391,9 +393,10 @@ class RayExecutor:
                 if not idle:  # every worker busy or stuck: said once a stall period, not waited on in silence (round 79c F2)
                     if waiting_said[0] is None or stalled(now - waiting_said[0], slowest):
                         waiting_said[0] = now
-                        log.warning("Ray: views %s.. waited %.0f s on one worker and no other worker is free to take them (each "
-                                    "is busy or stalled too: a hung node or a shared folder that stopped answering); waiting on "
-                                    "(Ctrl-C stops; the views logged so far are kept)", chunks[chunk][0].name, now - began)
+                        why = ("no other worker is free to take them (each is busy or stalled too: a hung node or a shared folder "
+                               "that stopped answering)") if len(actors) > 1 else "the only worker (slow, or its node hung)"
+                        log.warning("Ray: views %s.. waited %.0f s on %s; waiting on (Ctrl-C stops; the views logged so far are "
+                                    "kept)", chunks[chunk][0].name, now - began, why)  # round 81a F3: one worker has no other
                     continue
                 holders = [id(a) for a in copies(chunk)]
                 spare = next((a for a in idle if id(a) not in holders), None)
