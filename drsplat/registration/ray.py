@@ -393,8 +393,8 @@ class RayExecutor:
                 if not idle:  # every worker busy or stuck: said once a stall period, not waited on in silence (round 79c F2)
                     if waiting_said[0] is None or stalled(now - waiting_said[0], slowest):
                         waiting_said[0] = now
-                        why = ("no other worker is free to take them (each is busy or stalled too: a hung node or a shared folder "
-                               "that stopped answering)") if len(actors) > 1 else "the only worker (slow, or its node hung)"
+                        why = ("one worker and no other worker is free to take them (each is busy or stalled too: a hung node or a "
+                               "shared folder that stopped answering)") if len(actors) > 1 else "the only worker (slow, or its node hung)"
                         log.warning("Ray: views %s.. waited %.0f s on %s; waiting on (Ctrl-C stops; the views logged so far are "
                                     "kept)", chunks[chunk][0].name, now - began, why)  # round 81a F3: one worker has no other
                     continue
