@@ -224,6 +224,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
         raise DrsplatError(f"--mode segmentation: {problem.replace(' (type text queries or labels instead)', '')}; labels typed as "
                            "phrases are segmented in the viewer window, or by drsplat segment --labels")
     wants_query = bool(args.query or args.embedding or args.oracle)
+    said_empty = False  # a warning above already says the picture is empty
     if args.query or args.negatives:
         state.start_text_encoder(background=False)
     ok = True
@@ -259,16 +260,16 @@ def screenshot(args: argparse.Namespace, state) -> int:
             state.info(f"--threshold {args.threshold:g}: {int(state.selection.sum()):,} Gaussians selected")
         state.set_mode(args.mode)
         if args.mode in ("selection", "highlight") and not state.selection.any():  # the picture would show no match: say why
+            said_empty = args.mode == "selection"
             log.warning("no Gaussian scores >= %.4f: the screenshot shows %s; lower --threshold", state.threshold,
                         "nothing (an empty image)" if args.mode == "selection" else "no highlight")
         elif args.mode == "hide_selection" and state.selection.all():  # round 79b F2: a black image, said nowhere
+            said_empty = True
             log.warning("every Gaussian scores >= %.4f, so --mode hide_selection hides them all: the screenshot shows nothing (an "
                         "empty image); raise --threshold", state.threshold)
     elif args.threshold is not None or args.mode != "highlight":  # nothing to select or colour by: say so rather than ignore them
         log.warning("--threshold and --mode %s apply to a query (--query, --embedding or --oracle); the screenshot shows the scene's "
                     "own colours", args.mode)
-    said_empty = wants_query and args.mode in ("selection", "hide_selection") and (not state.selection.any() if args.mode == "selection"
-                                                                                   else state.selection.all())
     image = render_screenshot(state, camera, args.screenshot)
     drawn = drawn_means(state, args.mode if wants_query else "color")
     if image.size and not image.any() and not said_empty and not centres_in_view(drawn, camera):  # the background is black
@@ -291,14 +292,10 @@ def drawn_means(state, mode: str) -> np.ndarray:
 def centres_in_view(means: np.ndarray, camera, chunk: int = 1 << 20) -> bool:
     """Whether a Gaussian centre of means [N, 3] lies in front of `camera` and inside its image: a black screenshot is then
     the scene's own colours, not a camera that sees nothing."""
-    R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
-    for lo in range(0, len(means), chunk):
-        p = np.asarray(means[lo:lo + chunk], np.float64) @ R.T + t
-        z = p[:, 2]
-        front = z > 1e-6
-        u = camera.fx * p[front, 0] / z[front] + camera.cx
-        v = camera.fy * p[front, 1] / z[front] + camera.cy
-        if np.any((u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)):
+    for lo in range(0, len(means), chunk):  # chunks: Camera.project makes float64 copies
+        uv, z = camera.project(means[lo:lo + chunk])
+        u, v = uv[:, 0], uv[:, 1]
+        if np.any((z > 1e-6) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)):
             return True
     return False
 

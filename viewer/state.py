@@ -29,7 +29,7 @@ from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, NEAR
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character, one_line
 from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
-from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, UNKNOWN_MODEL, clip_weights_problem, is_oracle, split_model_id
+from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, clip_weights_problem, is_oracle, named_model
 from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_scene, read_field, written_codebook_path
 from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
@@ -340,10 +340,9 @@ class ViewerState:
     def _load_encoder(self, version: int) -> None:
         """Load the encoder for the scene of `version`; dropped if another scene opened meanwhile."""
         model_id = self.field.clip_model if self.field is not None else ""
-        name, pretrained = split_model_id(model_id)  # at '/' or ':', as the command line (round 79a F3)
-        if name.lower() in ("", UNKNOWN_MODEL):  # ids compare case-insensitively (round 80a F4)
-            name, pretrained = DEFAULT_MODEL, DEFAULT_PRETRAINED
-        elif pretrained is None and self.clip_checkpoint is None:
+        named = named_model(model_id)  # as the command line reads it (rounds 79a F3, 80a F4)
+        name, pretrained = named or (DEFAULT_MODEL, DEFAULT_PRETRAINED)
+        if named is not None and pretrained is None and self.clip_checkpoint is None:
             if version == self.scene_version:
                 self.encoder_status = (f"Text queries are off: this scene's CLIP model id {model_id!r} names no weights tag; pass "
                                        "--clip-checkpoint PATH to the weights its features were made with.")

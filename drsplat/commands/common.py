@@ -412,16 +412,15 @@ def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = 
     """The CLIP text encoder for a field: architecture and tag default to the field's model id.
     instead: what the error for an oracle field (no text encoder embeds into its space) says to pass."""
     from drsplat.features.clip import ClipEncoder, model_for_config, use_clip_config
-    from drsplat.features.modelid import DEFAULT_MODEL, UNKNOWN_MODEL, canonical_model_id, is_oracle, split_model_id
+    from drsplat.features.modelid import DEFAULT_MODEL, is_oracle, named_model
 
     if is_oracle(field.clip_model):
         raise DrsplatError(f"this scene's features are synthetic oracle embeddings, not CLIP: pass {instead} instead of text")
-    model, pretrained = DEFAULT_MODEL, None
-    if field.clip_model and canonical_model_id(field.clip_model) != UNKNOWN_MODEL:  # the field's own model (round 78b F2: an id without "/" asked
-        model, pretrained = split_model_id(field.clip_model)  # for the default ViT-B-16's weights)
-        if pretrained is None and not args.pretrained and args.clip_checkpoint is None:
-            raise DrsplatError(f"this scene's CLIP model id {field.clip_model!r} names no weights tag: pass --pretrained TAG "
-                               "or --clip-checkpoint FILE for the weights its features were made with")
+    named = named_model(field.clip_model)  # the field's own model (round 78b F2: an id without "/" asked for ViT-B-16's weights)
+    model, pretrained = named or (DEFAULT_MODEL, None)
+    if named is not None and pretrained is None and not args.pretrained and args.clip_checkpoint is None:
+        raise DrsplatError(f"this scene's CLIP model id {field.clip_model!r} names no weights tag: pass --pretrained TAG "
+                           "or --clip-checkpoint FILE for the weights its features were made with")
     config = getattr(args, "clip_config", None)
     model = model_for_config(args.clip_model, config, default=model)
     use_clip_config(config)

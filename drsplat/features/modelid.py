@@ -48,6 +48,13 @@ def split_model_id(model_id: str) -> tuple[str, str | None]:
     return model_id[:cut], model_id[cut + 1:] or None
 
 
+def named_model(model_id: str | None) -> tuple[str, str | None] | None:
+    """(architecture, weights tag or None) of the model an id names; None for no id ('' or 'unknown', in any case)."""
+    if not model_id or canonical_model_id(model_id) == UNKNOWN_MODEL:
+        return None
+    return split_model_id(model_id)
+
+
 def manifest_clip_entry(model: str, pretrained: str | None, checkpoint: str | None = None) -> dict:
     """The manifest.json keys that record the CLIP model (`clip` and `clip_model_id`, always consistent)."""
     return {
@@ -91,7 +98,7 @@ def check_compatible(a: str | None, b: str | None, what_a: str = "the features",
     so is an id naming an architecture without a weights tag ("ViT-L-14", as another tool's manifest may write it)
     beside one of that architecture with a tag.
     """
-    known = [m for m in (a, b) if m and canonical_model_id(m) != UNKNOWN_MODEL]
+    known = [m for m in (a, b) if named_model(m) is not None]
     if len(known) < 2:
         if (a or UNKNOWN_MODEL) != (b or UNKNOWN_MODEL):
             log.warning("the CLIP model of %s is %s and of %s is %s: cannot check they match", what_a, a or UNKNOWN_MODEL, what_b, b or UNKNOWN_MODEL)
