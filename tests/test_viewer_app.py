@@ -437,7 +437,7 @@ def test_the_window_follows_the_settings(app, registered, dataset):
     state, view = app.state, app.state.settings.view
     fb_w, fb_h = glfw.get_framebuffer_size(app.window)
     view.render_scale = 0.5
-    app.input.last_change = 0.0
+    app.hold_still()
     app._drawn_key = None
     _settle(app)
     assert (app._target.width, app._target.height) == (fb_w // 2, fb_h // 2), "the still frame is rendered at the resolution setting"
@@ -455,18 +455,13 @@ def test_the_window_follows_the_settings(app, registered, dataset):
 
 def _settle(app):
     """Let the background sort finish and its order be drawn."""
-    deadline = time.time() + 20
-    app.run(max_frames=1)
-    while app.renderer.sorter.busy or app.still_progress() is not None:
-        assert time.time() < deadline
-        app.run(max_frames=1)
-        time.sleep(0.01)
+    assert app.draw_until_still()
 
 
 def test_still_frames_are_drawn_progressively_and_equal_a_whole_frame(app, monkeypatch):
     import viewer.app
 
-    app.input.last_change = 0.0  # still
+    app.hold_still()  # still
     app.view.rotate(25, 0)
     _settle(app)
     monkeypatch.setattr(viewer.app, "MIN_STILL_CHUNK", 100)
@@ -496,7 +491,7 @@ def test_a_style_change_while_a_still_frame_is_drawn_is_in_the_frame_it_ends_wit
     import viewer.app
 
     state = app.state
-    app.input.last_change = 0.0
+    app.hold_still()
     app.view.rotate(-20, 0)
     _settle(app)
     monkeypatch.setattr(viewer.app, "MIN_STILL_CHUNK", 100)
@@ -524,6 +519,43 @@ def test_a_style_change_while_a_still_frame_is_drawn_is_in_the_frame_it_ends_wit
     np.testing.assert_array_equal(ended, whole, err_msg="the still frame drawn in chunks shows the style of its end")
 
 
+def test_a_threshold_dragged_over_a_scene_too_large_for_one_frame_shows_at_every_step(app, monkeypatch):
+    """Round 79b F4: on a 1M-Gaussian scene (a still frame drawn over several GUI frames) every step of a threshold drag
+    restarted the still frame, so the highlight showed nothing new until ~3.6 s after the drag ended. A highlight change
+    on such a scene is now drawn at once on the moving subsample, as a camera move is, and the still frame follows."""
+    import viewer.app
+
+    state = app.state
+    _settle(app)
+    r = app.renderer
+    budget, mode = r.moving_budget, state.mode
+    monkeypatch.setattr(viewer.app, "next_moving_budget", lambda budget, num, seconds: budget)
+    try:
+        assert app._budget_calibrated
+        r.moving_budget = r.num // 2  # a full frame of this scene takes more than a moving frame's time
+        assert state.run_oracle_query(state.oracle.names.index("ball"))
+        images = []
+        for threshold in (state.threshold, 0.99):
+            assert state.set_threshold(threshold)
+            app.run(max_frames=1)
+            assert app.moving and app.still_progress() is None, "a highlight change draws a moving frame, not a still one"
+            assert r.times.drawn == r.num // 2, "the moving subsample"
+            images.append(app._target.read_rgb())
+        assert np.abs(images[0].astype(int) - images[1].astype(int)).max() > 30, "each step of the drag is drawn"
+        _settle(app)
+        assert not app.moving and r.times.drawn == r.num, "once the drag ends, the still frame of the whole scene"
+
+        r.moving_budget = r.num  # a scene drawn whole within a moving frame's time: a still frame at once, as before
+        assert state.set_threshold(0.5)
+        app.run(max_frames=1)
+        assert not app.moving
+    finally:
+        r.moving_budget = budget
+        state.query, state.mode = None, mode
+        state.style_version += 1
+        _settle(app)
+
+
 def test_the_loop_sleeps_when_nothing_changes(app, monkeypatch):
     import viewer.app as va
 
@@ -531,7 +563,7 @@ def test_the_loop_sleeps_when_nothing_changes(app, monkeypatch):
     assert va.idle_timeout(False, 2, False) is None, "input arrived: draw now"
     assert va.idle_timeout(False, 0, True) == va.JOB_WAIT_SECONDS
     assert va.idle_timeout(False, 0, False) == va.IDLE_WAIT_SECONDS
-    app.input.last_change = 0.0
+    app.hold_still()
     app.run(max_frames=4)
     deadline = time.time() + 10
     while app.renderer.sorter.busy and time.time() < deadline:

@@ -129,7 +129,8 @@ def render_screenshot(state: ViewerState, camera: Camera, path: str | Path | Non
 
 @dataclass
 class InputState:
-    last_change: float = 0.0
+    last_change: float = 0.0  # the camera's
+    last_style_change: float = 0.0  # the highlight's, on a scene too large to draw in one frame (ViewerApp.sync_scene)
     last_time: float = 0.0
     drag_distance: float = 0.0
     events: int = 0  # frames still to draw after input events (see idle_timeout)
@@ -265,13 +266,36 @@ class ViewerApp:
             self._style_version = state.style_version
             self._drawn_key = None
             self._still = None  # its projection holds the old style: a still frame in progress starts again
+            if self._budget_calibrated and self.renderer.moving_budget < self.renderer.num:
+                # A still frame of this scene takes several GUI frames, and a threshold dragged over it restarted the
+                # frame at every step, so nothing new showed until the drag ended (round 83 / 79b F4): the new
+                # highlight is drawn on the moving subsample first, as a camera move is.
+                self.input.last_style_change = time.perf_counter()
 
     def camera_changed(self) -> None:
         self.input.last_change = time.perf_counter()
 
     @property
     def moving(self) -> bool:
-        return time.perf_counter() - self.input.last_change < MOVING_SECONDS
+        """The camera or, on a scene too large for one frame, the highlight changed in the last MOVING_SECONDS."""
+        return time.perf_counter() - max(self.input.last_change, self.input.last_style_change) < MOVING_SECONDS
+
+    def hold_still(self) -> None:
+        """Draw still frames from now on, as if the last change were long ago (benches, tests, screenshots)."""
+        self.input.last_change = self.input.last_style_change = 0.0
+
+    def draw_until_still(self, seconds: float = 20.0) -> bool:
+        """Draw GUI frames until the background sort, the moving frames of the last change and the still frame after
+        them are done (benches, tests, screenshots); False when `seconds` pass first."""
+        deadline = time.perf_counter() + seconds
+        self.run(max_frames=1)
+        while self.renderer is not None and (self.renderer.sorter.busy or self._still is not None or self.moving
+                                             or self._drawn_key is None or self._drawn_key[-1]):  # [-1]: drawn moving
+            if time.perf_counter() > deadline:
+                return False
+            time.sleep(0.01)
+            self.run(max_frames=1)
+        return True
 
     def handle_input(self) -> None:
         io = imgui.get_io()

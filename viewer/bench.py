@@ -66,7 +66,7 @@ def progressive_timings(app, scene: GaussianScene, repeats: int) -> dict[str, fl
     import statistics
 
     app.state.set_scene(scene)
-    app.input.last_change = 0.0
+    app.hold_still()
     app.run(max_frames=1)
     while app.renderer.sorter.busy or app.still_progress() is not None:
         app.run(max_frames=1)
@@ -74,13 +74,13 @@ def progressive_timings(app, scene: GaussianScene, repeats: int) -> dict[str, fl
     for _ in range(repeats):
         app.progressive = False
         app.view.rotate(1, 0)
-        app.input.last_change = 0.0
+        app.hold_still()
         start = time.perf_counter()
         app.run(max_frames=1)
         rows["whole"].append(time.perf_counter() - start)
         app.progressive = True
         app.view.rotate(1, 0)
-        app.input.last_change = 0.0
+        app.hold_still()
         frames, start = [], time.perf_counter()
         while not frames or app.still_progress() is not None:
             t = time.perf_counter()

@@ -31,12 +31,8 @@ def window_image(app) -> np.ndarray:
 
 def settle(app, seconds: float = 20.0) -> None:
     """Draw until the sort and the still frame are done."""
-    deadline = time.time() + seconds
-    app.input.last_change = 0.0
-    app.run(max_frames=2)
-    while (app.renderer.sorter.busy or app.still_progress() is not None) and time.time() < deadline:
-        app.run(max_frames=1)
-        time.sleep(0.01)
+    app.hold_still()
+    app.draw_until_still(seconds)
     app.run(max_frames=2)
 
 
@@ -90,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         chunk_rule, va.next_still_chunk = va.next_still_chunk, lambda chunk, num, seconds, target=0: chunk
         try:
             app.view.rotate(30, 0)
-            app.input.last_change = 0.0
+            app.hold_still()
             settle_sort = time.time() + 10
             while app.renderer.sorter.busy and time.time() < settle_sort:
                 app.run(max_frames=1)
