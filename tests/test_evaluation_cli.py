@@ -391,6 +391,51 @@ def test_eval_iou_from_points_with_class_subset(registered, capsys):
     assert rep["mIoU"] > 0.9
 
 
+def test_eval_segmentation_argmax_runs_over_every_queried_label_as_opengaussian(registered, tmp_path, capsys):
+    """Round 76b F1: the segmentation's argmax ran over the labels the ground truth holds only, which tells the prediction
+    what the scene contains. OpenGaussian's eval_scannet.py takes it over every target class and restricts only the mean
+    to the present ones: a 'rug' between floor and table, absent from the room, now wins some Gaussians (a miss)."""
+    from drsplat.commands.common import load_registered
+    from drsplat.scene import load_ply
+
+    r = registered
+    emb = np.load(r["ds"] / "text_embeddings.npy")
+    rug = emb[r["names"].index("floor")] + emb[r["names"].index("table")]
+    np.save(tmp_path / "emb9.npy", np.vstack([emb, rug / np.linalg.norm(rug)]).astype(np.float32))
+    (tmp_path / "names9.json").write_text(json.dumps([*r["names"], "rug"]))
+    gt = np.load(r["ds"] / "gt" / "labels.npy").astype(np.int64)
+    base = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(r["ds"] / "scene.ply"),
+            "--label-names", str(tmp_path / "names9.json"), "--text-embeddings", str(tmp_path / "emb9.npy"), "--weighting", "count"]
+    docs = {}
+    for rule in ("queried", "present"):
+        js = tmp_path / f"{rule}.json"
+        assert main([*base, "--argmax-over", rule, "--json", str(js)]) == 0
+        docs[rule] = json.loads(js.read_text())
+    assert "argmax also over 1 label absent from the ground truth" in capsys.readouterr().out
+    assert docs["queried"]["absent_labels_in_argmax"] == ["rug"] and docs["present"]["absent_labels_in_argmax"] == []
+
+    # the reference: OpenGaussian's calculate_metrics on the original scene's Gaussians (pruned ones predict nothing)
+    scene, field = load_registered(r["ply"])
+    original = load_ply(r["ds"] / "scene.ply")
+    from drsplat.eval.metrics import match_gaussians
+
+    index = match_gaussians(original.means, scene.means)
+    scores = np.full((original.num_gaussians, 9), -np.inf)
+    scores[index] = np.where(field.assigned()[:, None], field.scores(np.load(tmp_path / "emb9.npy")), -np.inf)
+    for rule, columns in (("queried", 9), ("present", 8)):
+        pred = np.argmax(scores[:, :columns], axis=1)
+        pred[~np.isfinite(scores).any(axis=1)] = -1
+        present = [l for l in range(8) if (gt == l).any()]
+        ious = [np.sum((gt == l) & (pred == l)) / np.sum(((gt == l) | (pred == l)) & (gt >= 0)) for l in present]
+        seg = next(x for x in docs[rule]["reports"] if x["task"] == "seg")
+        assert seg["mIoU"] == pytest.approx(np.mean(ious), abs=1e-12), rule
+    assert int(np.sum(np.argmax(scores[gt >= 0], axis=1) == 8)) > 0, "the rug wins some labelled Gaussians"
+    seg = {rule: next(x for x in doc["reports"] if x["task"] == "seg")["mIoU"] for rule, doc in docs.items()}
+    assert seg["queried"] < seg["present"]
+    loc = {rule: next(x for x in doc["reports"] if x["task"] == "loc") for rule, doc in docs.items()}
+    assert loc["queried"] == loc["present"], "localisation never averages an absent label"
+
+
 def test_eval_cli_rejects_bad_options(registered, capsys):
     r = registered
     base = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(r["ds"] / "scene.ply"), *query_args(r)]

@@ -72,6 +72,10 @@ def _add_query_arguments(parser: argparse.ArgumentParser, names_help: str) -> No
 def _add_task_arguments(parser: argparse.ArgumentParser) -> None:
     t = parser.add_argument_group("metrics")
     t.add_argument("--task", choices=("loc", "seg", "both"), default="both", help="localisation (global threshold), segmentation (argmax), or both")
+    t.add_argument("--argmax-over", choices=("queried", "present"), default="queried",
+                   help="segmentation's argmax over every queried label (default; OpenGaussian's protocol: a label absent from "
+                        "the ground truth can win a Gaussian, a miss) or only over the labels the ground truth holds (easier; "
+                        "drsplat's rule until 2026-12-07); the means are over the present labels either way")
     t.add_argument("--weighting", default="volume,count", metavar="LIST",
                    help="comma-separated subset of volume (Dr. Splat), count (OpenGaussian), voxel; default volume,count")
     t.add_argument("--taus", default="0:1:0.01", metavar="START:STOP:STEP", help="localisation threshold grid (inclusive)")
@@ -466,27 +470,36 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
     present = sorted(set(int(x) for x in np.unique(gt) if x >= 0))
     if not present:
         raise DrsplatError("no Gaussian has a ground-truth label; nothing to evaluate")
-    # only labels present in the ground truth are queried (NYU40 has 40 names, a scene a few)
+    # only labels present in the ground truth are averaged (NYU40 has 40 names, a scene a few)
     keep = np.array(present)
     sub_names = [names[i] for i in keep]
     remap = np.full(len(names) + 1, -1, np.int64)
     remap[keep] = np.arange(len(keep))
     gt_sub = np.where(gt >= 0, remap[np.maximum(gt, 0)], -1)
     assigned = assigned_rows(args.registered, field)
-    scores = label_scores(args, field, sub_names) if args.text_embeddings is None else label_scores(args, field, names)[:, keep]
+    tasks = ("loc", "seg") if args.task == "both" else (args.task,)
+    absent = [i for i in range(len(names)) if i not in set(present)] if "seg" in tasks and args.argmax_over == "queried" else []
+    queried = present + absent  # the absent labels only compete in the segmentation's argmax (localisation never averages them)
+    if args.text_embeddings is None:
+        scores = label_scores(args, field, [names[i] for i in queried])
+    else:
+        scores = label_scores(args, field, names)[:, queried]
     if index is not None:
         scores = expand_scores(scores, index, scene.num_gaussians)
         registered, assigned = assigned, np.zeros(scene.num_gaussians, bool)
         assigned[index] = registered
-    tasks = ("loc", "seg") if args.task == "both" else (args.task,)
-    reports = evaluate_scene(scene, scores, gt_sub, sub_names, tasks, parse_weightings(args.weighting), parse_taus(args.taus),
-                             args.voxel_resolution, args.voxel_empty, assigned=assigned)
+    reports = evaluate_scene(scene, scores[:, :len(present)], gt_sub, sub_names, tasks, parse_weightings(args.weighting), parse_taus(args.taus),
+                             args.voxel_resolution, args.voxel_empty, assigned=assigned, absent_scores=scores[:, len(present):] if absent else None)
     check_defined(reports, sub_names)
     stream = table_stream(args.json, saved_labels)
+    absent_names = [names[i] for i in absent]
     # the file first: a table reader that goes (`| head`) ends the command quietly, and must not take the file with it
-    write_json(args.json, {"scene": str(args.registered), "labels": sub_names, "reports": [r.to_dict() for r in reports]})
+    write_json(args.json, {"scene": str(args.registered), "labels": sub_names, "absent_labels_in_argmax": absent_names,
+                           "reports": [r.to_dict() for r in reports]})
     print(f"{shown_path(args.registered.name)}: {scene.num_gaussians} Gaussians, {len(sub_names)} labels, "
-          f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}", file=stream)
+          f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}"
+          + (f"; the segmentation's argmax also over {counted(len(absent), 'label', 'labels')} absent from the ground truth" if absent else ""),
+          file=stream)
     print(format_reports(reports), file=stream)
     for r in reports:
         if r.curve and (args.curve or r is next(x for x in reports if x.curve)):
