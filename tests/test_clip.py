@@ -174,6 +174,47 @@ def test_clip_configs_open_clip_would_fail_on_are_one_sentence_or_work(tmp_path)
         ClipEncoder("TinyRect-drsplat-test", None, None, "cpu", random_weights=True)
 
 
+def test_a_model_named_in_another_case_is_built_as_open_clip_spells_it(tmp_path, tiny_clip, capsys):
+    """Round 83a F2: model ids compare case-insensitively, so a field of 'vit-b-16:LAION2B_S34B_B88K' passed the model
+    check, but open_clip's lookups are exact and the query was refused as an "unknown OpenCLIP model" needing
+    --clip-config. The architecture is now built as open_clip spells it; a query of such a field runs."""
+    from drsplat.cli import main
+    from drsplat.lang import attach_field, build_field
+    from drsplat.scene import save_ply
+    from tests.test_index import tiny_scene
+
+    encoder = ClipEncoder(TINY_CLIP.lower(), checkpoint=tiny_clip, device="cpu")
+    assert encoder.model_name == TINY_CLIP
+    field = build_field(np.eye(4, 32, dtype=np.float32), np.ones(4, np.float32), "none", clip_model=f"{TINY_CLIP.upper()}:FILE:tiny_clip.pt")
+    path = tmp_path / "upper.ply"
+    save_ply(attach_field(tiny_scene(4), field, path), path)
+    assert main(["query", str(path), "--text", "chair", "--clip-checkpoint", str(tiny_clip), "--scores", str(tmp_path / "s.npy")]) == 0, \
+        capsys.readouterr().err
+    assert np.load(tmp_path / "s.npy").shape == (4,)
+
+
+def test_an_hf_hub_model_is_refused_as_such_without_asking_for_a_tag(tmp_path, capsys):
+    """Round 83a F3: a field of 'hf-hub:ORG/NAME' was told to pass --pretrained TAG, and with one was refused as an unknown
+    model needing --clip-config: drsplat does not load hf-hub: names, which is now what both say."""
+    from drsplat.cli import main
+    from drsplat.lang import attach_field, build_field
+    from drsplat.scene import save_ply
+    from tests.test_index import tiny_scene
+
+    with pytest.raises(DrsplatError, match=r"'hf-hub:org/name' is an open_clip hf-hub: name, which drsplat does not load"):
+        ClipEncoder("hf-hub:org/name", device="cpu", random_weights=True)
+    field = build_field(np.eye(4, 32, dtype=np.float32), np.ones(4, np.float32), "none", clip_model="hf-hub:org/name")
+    path = tmp_path / "hub.ply"
+    save_ply(attach_field(tiny_scene(4), field, path), path)
+    for extra in ([], ["--pretrained", "laion2b_s34b_b88k"]):
+        assert main(["query", str(path), "--text", "chair", *extra]) == 1
+        err = capsys.readouterr().err
+        assert "CLIP model id 'hf-hub:org/name' is an open_clip hf-hub: name" in err and "--pretrained" not in err, err
+    check_compatible("hf-hub:org/name", "hf-hub:org/name")
+    with pytest.raises(DrsplatError, match="CLIP model mismatch"):
+        check_compatible("hf-hub:org/name", "hf-hub")  # an hf-hub id names its weights: not "one names no weights tag"
+
+
 def test_a_config_open_clip_cannot_build_is_named_not_the_checkpoint(tmp_path, tiny_clip):
     """Round 61c: a --clip-config with a key open_clip's model does not take failed while the checkpoint loaded, and the
     error said the checkpoint was "not a readable torch.save checkpoint". Now it names the config."""

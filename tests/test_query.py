@@ -1063,6 +1063,18 @@ def test_a_second_embedding_file_is_a_usage_error_not_a_silent_replacement(tmp_p
         main(["segment", str(registered["exact"]), "--embeddings", str(tmp_path / "a.npy"), "--embeddings", str(tmp_path / "b.npy"),
               "--out", str(tmp_path / "t.npy")])
     assert exit_.value.code == 2 and "--embeddings is given twice" in capsys.readouterr().err
+    np.save(tmp_path / "ids_a.npy", np.array([0, 1]))
+    np.save(tmp_path / "ids_b.npy", np.array([2]))
+    with pytest.raises(SystemExit) as exit_:  # round 83a F1: --gaussians kept the last set too
+        main(["query", str(registered["exact"]), "--gaussians", str(tmp_path / "ids_a.npy"), "--gaussians", str(tmp_path / "ids_b.npy"),
+              "--scores", str(tmp_path / "s.npy")])
+    assert exit_.value.code == 2 and "--gaussians is given twice" in capsys.readouterr().err
+    from viewer.launch import build_parser
+
+    for flag in ("--query", "--embedding", "--oracle"):  # the viewer's screenshot query (round 83a F1)
+        with pytest.raises(SystemExit) as exit_:
+            build_parser().parse_args(["s.ply", flag, "a", flag, "b"])
+        assert exit_.value.code == 2 and f"{flag} is given twice" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("model_id, expected", [

@@ -460,6 +460,24 @@ def test_a_screenshot_that_shows_nothing_says_why(demo, tmp_path, capsys):
     assert not np.asarray(Image.open(tmp_path / "d.png")).any()  # black indeed
 
 
+def test_a_black_selection_screenshot_blames_the_selection_not_the_scene(demo, tmp_path, capsys):
+    """Round 83a F4: a `--mode selection` picture of a selection off camera (one Gaussian, outside a 64-px home view)
+    said the scene lay behind the camera or outside its view, though the scene was in view; and round 83a F5: the count
+    read "1 Gaussians selected"."""
+    from viewer.launch import main
+    from viewer.state import ViewerState
+
+    registered, dataset = demo
+    state = ViewerState()
+    assert state.load_scene(registered) and state.load_source(dataset) and state.run_oracle_query(0)
+    best = float(np.nanmax(state.query.scores))
+    assert main([str(registered), "--source", str(dataset), "--screenshot", str(tmp_path / "s.png"), "--width", "64",
+                 "--oracle", state.oracle.names[0], "--threshold", repr(best - 1e-7), "--mode", "selection"]) == 0
+    err = capsys.readouterr().err
+    assert ": 1 Gaussian selected" in err, err
+    assert "the selected Gaussians lie outside this camera's view" in err and "the scene lies behind" not in err, err
+
+
 def test_a_scene_looks_the_same_at_any_scale_at_home_and_zoomed_in(gl_context, demo):
     """Round 71b F2: the renderer's near plane was 0.01 world units and the home radius at least 0.01, so the demo scene
     scaled by 1e-3 (an object 2 cm across, in metres) was cut away after 10 zoom steps and one scaled by 1e-6 was a dot at

@@ -17,7 +17,7 @@ import numpy as np
 
 from drsplat.cameras import load_cameras
 from drsplat.cli import setup_logging, sigterm_as_interrupt
-from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, float_range, guard_args, int_range, nonneg_int, output_file
+from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, Once, float_range, guard_args, int_range, nonneg_int, output_file
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError, shown_path
@@ -68,9 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "(.jpg, .webp, .bmp and .tif write those formats)")
     p.add_argument("--camera", type=nonneg_int, metavar="I", help="with --screenshot: training camera I of --source (default: the home view)")
     q = p.add_mutually_exclusive_group()
-    q.add_argument("--query", metavar="TEXT", help="with --screenshot: highlight what matches TEXT (needs CLIP weights)")
-    q.add_argument("--embedding", type=Path, metavar="Q.npy", help="with --screenshot: highlight what matches the embedding Q.npy")
-    q.add_argument("--oracle", metavar="LABEL", help="with --screenshot: query a synthetic dataset's oracle label (its ground-truth vector)")
+    q.add_argument("--query", action=Once, metavar="TEXT", help="with --screenshot: highlight what matches TEXT (needs CLIP weights)")
+    q.add_argument("--embedding", type=Path, action=Once, metavar="Q.npy", help="with --screenshot: highlight what matches the embedding Q.npy")
+    q.add_argument("--oracle", action=Once, metavar="LABEL", help="with --screenshot: query a synthetic dataset's oracle label (its ground-truth vector)")
     p.add_argument("--negatives", default="", help="comma-separated negative phrases (relevancy, needs CLIP weights)")
     p.add_argument("--threshold", type=float_range(-1.0, 1.0), help="selection threshold (default: 0.5 for a text query, which is scored by relevancy; Otsu's threshold of the "
                    "scores otherwise)")
@@ -257,7 +257,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
     elif wants_query:
         if args.threshold is not None:
             state.set_threshold(args.threshold)
-            state.info(f"--threshold {args.threshold:g}: {int(state.selection.sum()):,} Gaussians selected")
+            state.info(f"--threshold {args.threshold:g}: {counted(int(state.selection.sum()), 'Gaussian', 'Gaussians')} selected")
         state.set_mode(args.mode)
         if args.mode in ("selection", "highlight") and not state.selection.any():  # the picture would show no match: say why
             said_empty = args.mode == "selection"
@@ -271,12 +271,21 @@ def screenshot(args: argparse.Namespace, state) -> int:
         log.warning("--threshold and --mode %s apply to a query (--query, --embedding or --oracle); the screenshot shows the scene's "
                     "own colours", args.mode)
     image = render_screenshot(state, camera, args.screenshot)
-    drawn = drawn_means(state, args.mode if wants_query else "color")
-    if image.size and not image.any() and not said_empty and not centres_in_view(drawn, camera):  # the background is black
-        log.warning("the screenshot is all background (black): no Gaussian is drawn from this camera (the scene lies behind it or "
-                    "outside its view, or the scene and its cameras are in different frames); choose another --camera")  # round 79b F2
+    mode = args.mode if wants_query else "color"
+    if image.size and not image.any() and not said_empty and not centres_in_view(drawn_means(state, mode), camera):  # black background
+        log.warning("the screenshot is all background (black): %s", nothing_drawn_reason(mode, centres_in_view(state.scene.means, camera)))
     log.info("wrote %s (%dx%d)", shown_path(args.screenshot), camera.width, camera.height)
     return 0
+
+
+def nothing_drawn_reason(mode: str, scene_in_view: bool) -> str:
+    """Why a screenshot in display `mode` drew no Gaussian, given whether any of the scene's centres lie in view: the
+    drawn part (the selection, or all but it) off camera (round 83a F4: that was blamed on the scene), else the scene."""
+    if scene_in_view and mode in ("selection", "hide_selection"):
+        drawn = "the selected Gaussians lie" if mode == "selection" else "the Gaussians not selected lie"
+        return f"{drawn} outside this camera's view; choose another --camera or another --threshold"
+    return ("no Gaussian is drawn from this camera (the scene lies behind it or outside its view, or the scene and its cameras "
+            "are in different frames); choose another --camera")  # round 79b F2
 
 
 def drawn_means(state, mode: str) -> np.ndarray:

@@ -28,7 +28,7 @@ from drsplat.commands.common import DEFAULT_RELEVANCY_THRESHOLD, checked_phrases
 from drsplat.defaults import DEFAULT_CODEBOOK, DEFAULT_LEVEL, DEFAULT_TOPK, NEAR, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character, one_line
-from drsplat.features.clip import ClipEncoder, use_clip_config  # imports open_clip/torch only when an encoder is built
+from drsplat.features.clip import ClipEncoder, unsupported_model_name, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, clip_weights_problem, is_oracle, named_model
 from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_scene, read_field, written_codebook_path
 from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select
@@ -342,6 +342,12 @@ class ViewerState:
         model_id = self.field.clip_model if self.field is not None else ""
         named = named_model(model_id)  # as the command line reads it (rounds 79a F3, 80a F4)
         name, pretrained = named or (DEFAULT_MODEL, DEFAULT_PRETRAINED)
+        unsupported = unsupported_model_name(name)
+        if unsupported is not None:  # no checkpoint can help (round 83a F3)
+            if version == self.scene_version:
+                self.encoder_status = (f"Text queries are off: this scene's CLIP model id {model_id!r} {unsupported}. "
+                                       "Embedding files and clicks query by cosine.")
+            return
         if named is not None and pretrained is None and self.clip_checkpoint is None:
             if version == self.scene_version:
                 self.encoder_status = (f"Text queries are off: this scene's CLIP model id {model_id!r} names no weights tag; pass "

@@ -411,13 +411,17 @@ def oracle_flag(flag: str) -> str:
 def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = oracle_flag("--embedding")):
     """The CLIP text encoder for a field: architecture and tag default to the field's model id.
     instead: what the error for an oracle field (no text encoder embeds into its space) says to pass."""
-    from drsplat.features.clip import ClipEncoder, model_for_config, use_clip_config
+    from drsplat.features.clip import ClipEncoder, model_for_config, unsupported_model_name, use_clip_config
     from drsplat.features.modelid import DEFAULT_MODEL, is_oracle, named_model
 
     if is_oracle(field.clip_model):
         raise DrsplatError(f"this scene's features are synthetic oracle embeddings, not CLIP: pass {instead} instead of text")
     named = named_model(field.clip_model)  # the field's own model (round 78b F2: an id without "/" asked for ViT-B-16's weights)
     model, pretrained = named or (DEFAULT_MODEL, None)
+    problem = unsupported_model_name(model) if args.clip_model is None else None
+    if problem is not None:  # no --pretrained can help (round 83a F3: it was asked for)
+        raise DrsplatError(f"this scene's CLIP model id {field.clip_model!r} {problem}: pass query embeddings made with that model "
+                           "instead of text")
     if named is not None and pretrained is None and not args.pretrained and args.clip_checkpoint is None:
         raise DrsplatError(f"this scene's CLIP model id {field.clip_model!r} names no weights tag: pass --pretrained TAG "
                            "or --clip-checkpoint FILE for the weights its features were made with")

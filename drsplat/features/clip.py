@@ -58,6 +58,27 @@ def checkpoint_problem(path: Path, exc: BaseException) -> str:
     return "it is a zip archive, but not a readable torch.save checkpoint" if is_zip else "it is a pickle, but not of a checkpoint torch can read"
 
 
+HUB_MODEL_PREFIXES = ("hf-hub:", "local-dir:")  # open_clip's names of a model and its weights together
+
+
+def unsupported_model_name(model: str) -> str | None:
+    """Why an open_clip model name cannot be used, as a predicate ("is an open_clip hf-hub: name, ..."; None: it can):
+    drsplat records an embedding space as architecture and weights apart (`modelid`), which open_clip's
+    "hf-hub:ORG/REPO" and "local-dir:PATH" names join (round 61c)."""
+    if not model.startswith(HUB_MODEL_PREFIXES):
+        return None
+    return f"is an open_clip {model.split(':')[0]}: name, which drsplat does not load"
+
+
+def open_clip_spelling(name: str, known: list[str]) -> str:
+    """`name` as `known` spells it when they differ in case only (model ids compare case-insensitively,
+    `modelid.canonical_model_id`, but open_clip's lookups are exact: round 83a F2); else `name`."""
+    if name in known:
+        return name
+    same = [k for k in known if k.lower() == name.lower()]
+    return same[0] if len(same) == 1 else name
+
+
 class ClipEncoder:
     """OpenCLIP model embedding images and text into one unit-normalised space.
 
@@ -80,6 +101,11 @@ class ClipEncoder:
         import open_clip
         import torch
 
+        problem = unsupported_model_name(model)
+        if problem is not None:
+            raise DrsplatError(f"CLIP model {model!r} {problem}: use an architecture of open_clip.list_models() with --clip-checkpoint "
+                               "FILE (and --clip-config CONFIG.json for one open_clip does not ship)")
+        model = open_clip_spelling(model, open_clip.list_models())
         if model not in open_clip.list_models():  # a config of another name read as none given (round 61c): say how names are made
             raise DrsplatError(f"unknown OpenCLIP model {model!r} (see open_clip.list_models()); an architecture open_clip does not ship "
                                f"needs its model config, --clip-config CONFIG.json, and open_clip names that model after the file: "
@@ -99,7 +125,7 @@ class ClipEncoder:
             self.pretrained = "random"
             weights = None
         else:
-            self.pretrained = pretrained or DEFAULT_PRETRAINED
+            self.pretrained = open_clip_spelling(pretrained or DEFAULT_PRETRAINED, open_clip.list_pretrained_tags_by_model(model))
             weights = resolve_pretrained_weights(model, self.pretrained)
         self.checkpoint = weights
         try:

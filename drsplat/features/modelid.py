@@ -103,7 +103,8 @@ def check_compatible(a: str | None, b: str | None, what_a: str = "the features",
         if (a or UNKNOWN_MODEL) != (b or UNKNOWN_MODEL):
             log.warning("the CLIP model of %s is %s and of %s is %s: cannot check they match", what_a, a or UNKNOWN_MODEL, what_b, b or UNKNOWN_MODEL)
         return
-    (arch_a, tag_a), (arch_b, tag_b) = (split_model_id(canonical_model_id(m)) for m in known)
+    # split as written (an hf-hub architecture keeps its ':'), compared as canonical ids are (round 83a F3)
+    (arch_a, tag_a), (arch_b, tag_b) = ((canonical_model_id(arch), tag) for arch, tag in map(split_model_id, known))
     if arch_a == arch_b != ORACLE_MODEL_ID and (tag_a is None or tag_b is None) and tag_a != tag_b:  # one names no weights (round 79a F2)
         log.warning("the CLIP model of %s is %s and of %s is %s: one names no weights tag, so only the architecture is "
                     "checked", what_a, a, what_b, b)
