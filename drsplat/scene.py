@@ -1238,6 +1238,34 @@ def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
     return float(np.linalg.norm(ranked[n - 1 - k] - ranked[k]))
 
 
+BALL_TRIM = 0.1  # `scene_ball`'s centre is the mean of all but this share of the means farthest from the previous one
+BALL_ROUNDS = 3
+
+
+def scene_ball(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> tuple[np.ndarray, float]:
+    """(centre [3], radius) of the means [N, 3] (finite and within MAX_COORDINATE; every k-th, at most `sample`):
+    from the plain mean, BALL_ROUNDS times the mean of the means within the (1 − BALL_TRIM) quantile of distances to
+    the previous centre, and the radius within which all but ⌈EXTENT_OUTLIERS·n⌉ of them lie (all of fewer than
+    EXTENT_TRIM_FROM). Both move with the world: a rotation or translation of the means moves the centre alike and
+    keeps the radius, a scale scales both, which `scene_extent`'s axis-aligned box does not (round 83b F1: the fit
+    stage's probe views changed with the world's orientation). A stray mean far away drags the first mean toward it,
+    is then the farthest, and is left out of the next. ((0, 0, 0), 0) without any mean."""
+    rows = np.asarray(spread_rows(means, max(sample, 1)), np.float64)
+    with np.errstate(invalid="ignore"):
+        rows = rows[(np.abs(rows) <= MAX_COORDINATE).all(axis=1)]
+    n = rows.shape[0]
+    if not n:
+        return np.zeros(3), 0.0
+    centre = rows.mean(axis=0)
+    for _ in range(BALL_ROUNDS):
+        dist = np.linalg.norm(rows - centre, axis=1)
+        keep = max(1, math.ceil((1.0 - BALL_TRIM) * n))
+        centre = rows[np.argpartition(dist, keep - 1)[:keep]].mean(axis=0)
+    dist = np.linalg.norm(rows - centre, axis=1)
+    k = math.ceil(EXTENT_OUTLIERS * n) if n >= EXTENT_TRIM_FROM else 0
+    return centre, float(np.partition(dist, n - 1 - k)[n - 1 - k])
+
+
 def _finite_values(stored: np.ndarray) -> np.ndarray:
     """The finite entries of `stored`, flattened (NaN and infinite rows are the non-finite policy's)."""
     values = np.asarray(stored).ravel()

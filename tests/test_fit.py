@@ -29,7 +29,7 @@ from drsplat.registration.fit import (
     probe_floaters,
     probe_picks,
     ProbeOrder,
-    probe_scale,
+    probe_space,
     rerender_reference,
     rerender_scores,
     mask_iou_score,
@@ -378,6 +378,42 @@ def test_a_view_that_does_not_score_is_passed_over_and_moves_no_other_pick():
         assert blind in probed and scored == want
 
 
+def _world_moved(scene: GaussianScene, cams: list, angle: float, axis, shift, scale: float = 1.0):
+    """The scene and its cameras in another world frame: x' = scale·R x + shift, R the turn by `angle` about `axis`
+    (the Gaussians' rotations turned with it), each camera then (R_c Rᵀ, scale·t_c − R_c Rᵀ shift): the same pictures."""
+    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    turn = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    qw, qv = np.cos(angle / 2), np.sin(angle / 2) * axis  # the same turn as a quaternion, composed before each Gaussian's
+    w, v = scene.quats[:, :1].astype(np.float64), scene.quats[:, 1:].astype(np.float64)
+    quats = np.concatenate([qw * w - v @ qv[:, None], qw * v + w * qv + np.cross(qv, v)], axis=1)
+    moved = dataclasses.replace(scene, means=(scale * scene.means.astype(np.float64) @ turn.T + shift).astype(np.float32),
+                                log_scales=(scene.log_scales + np.log(scale)).astype(np.float32), quats=quats.astype(np.float32))
+    views = [dataclasses.replace(c, R=np.asarray(c.R) @ turn.T, t=scale * np.asarray(c.t) - np.asarray(c.R) @ turn.T @ np.asarray(shift))
+             for c in cams]
+    return moved, views
+
+
+def test_the_probe_views_and_the_fit_do_not_depend_on_the_worlds_frame(rooms):
+    """Round 83b F1: the first probe view was the lowest pose, compared coordinate by coordinate, so a capture turned in
+    the world (COLMAP's frame is arbitrary) probed other views, and on a room whose footprints score close four of six
+    turns flipped the footprint (seg mIoU vol 0.498 <-> 0.642). The probes start from the view farthest from the scene's
+    centre, in units of its size (`ProbeSpace`): a turned, moved or scaled copy probes the same views, and the fit
+    scores them alike."""
+    data = rooms["geometry"]
+    scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
+    names = [cams[i].name for i in probe_picks(cams, space=probe_space(scene))]
+    base = fit_stage("fit-check-vote-reject", scene, cams, data / "features", 1, 40).choice
+    for angle, axis, shift, scale in ((np.pi / 2, (0, 0, 1), (0, 0, 0), 1.0), (2.1, (1, 2, 3), (40.0, -7.0, 3.0), 1.0),
+                                      (0.7, (-1, 0.3, 0.2), (100.0, 0, 0), 1.0), (1.3, (0, 1, 0), (0, 0, 0), 1e3), (0.0, (0, 0, 1), (0, 0, 0), 1e-2)):
+        moved, views = _world_moved(scene, cams, angle, axis, shift, scale)
+        assert [views[i].name for i in probe_picks(views, space=probe_space(moved))] == names, (angle, axis, shift, scale)
+        if scale == 1.0:
+            choice = fit_stage("fit-check-vote-reject", moved, views, data / "features", 1, 40).choice
+            assert choice.footprint == base.footprint and choice.views == base.views
+            assert choice.margin == pytest.approx(base.margin, abs=1e-3), (angle, axis, shift)
+
+
 @pytest.mark.parametrize("source", ["render", "geometry"])
 def test_the_fit_decides_alike_whatever_order_the_cameras_come_in(rooms, source):
     """Round 41: the probe views were taken at evenly spaced places of the camera list, which is the order a file
@@ -405,7 +441,7 @@ def test_views_of_one_name_are_probed_in_the_same_order_whatever_the_list(rooms)
     data = rooms["geometry"]
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     order = sorted(range(len(cams)), key=lambda j: cams[j].name)
-    place = order.index(int(probe_picks(cams, scale=probe_scale(scene))[2]))
+    place = order.index(int(probe_picks(cams, space=probe_space(scene))[2]))
     a, b = order[place], order[place + 1]
     cams = list(cams)
     cams[b] = dataclasses.replace(cams[b], name=cams[a].name)
@@ -413,7 +449,7 @@ def test_views_of_one_name_are_probed_in_the_same_order_whatever_the_list(rooms)
     for seed in range(4):
         perm = np.random.default_rng(seed).permutation(len(cams))
         shuffled = [cams[j] for j in perm]
-        assert [int(perm[i]) for i in probe_picks(shuffled, scale=probe_scale(scene))] == probe_picks(cams, scale=probe_scale(scene)).tolist()  # the same cameras, in the same order
+        assert [int(perm[i]) for i in probe_picks(shuffled, space=probe_space(scene))] == probe_picks(cams, space=probe_space(scene)).tolist()  # the same cameras, in the same order
         choice = choose_footprint(scene, shuffled, data / "features", 1, 40)
         np.testing.assert_array_equal(choice.held_paper, base.held_paper)
         np.testing.assert_array_equal(choice.held_sharp, base.held_sharp)
@@ -434,7 +470,7 @@ def test_a_probe_view_without_masks_is_passed_over_not_a_crash(rooms, tmp_path):
     data = tmp_path / "room"
     shutil.copytree(rooms["geometry"], data)
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
-    empty = cams[int(probe_picks(cams, scale=probe_scale(scene))[0])].name
+    empty = cams[int(probe_picks(cams, space=probe_space(scene))[0])].name
     ids, feats = read_features(data / "features", empty)
     write_features(data / "features", empty, np.full_like(ids, -1), np.zeros((0, feats.shape[1]), np.float32))
     choice = choose_footprint(scene, cams, data / "features", 1, 40)
@@ -487,10 +523,10 @@ def test_floaters_the_rejection_drops_do_not_sway_a_rejecting_modes_fit(rooms):
     the grains lie over something else: the fit took the filtered footprint for silhouette masks
     (H's margin +0.094 -> -0.021; labelled right 0.853 against the sharp footprint's 0.929). A
     rejecting mode scores the labellings without what its rejection drops. Here 10,000 grains of
-    opacity 0.03 in the silhouette room: the fit that keeps them labelled (`fit`) loses most of its
-    margin (+0.007; it flipped to the filtered footprint on the probe views of round 47), the
-    default's (`-reject`) keeps the sharp one by the clean room's margin (+0.055), on every place
-    alike."""
+    opacity 0.03 in the silhouette room: the fit that keeps them labelled (`fit`) loses its margin
+    and flips to the filtered footprint (−0.001 on the probe views since round 83b, +0.007 before;
+    the clean room +0.095), the default's (`-reject`) keeps the sharp one (+0.020; the clean room
+    +0.078), on every place alike."""
     data = rooms["geometry"]
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     dusty = _with_dust(scene, 10_000, 0.03, 0.07)
@@ -498,8 +534,8 @@ def test_floaters_the_rejection_drops_do_not_sway_a_rejecting_modes_fit(rooms):
     assert clean.footprint == "sharp" and clean.margin > 0.04
     swayed = fit_stage("fit", dusty, cams, data / "features", 1, 40).choice
     kept = fit_stage("fit-check-vote-reject", dusty, cams, data / "features", 1, 40, keep_pairs=True).choice
-    assert kept.footprint == "sharp" and kept.margin > 0.03
-    assert swayed.floaters == 0 and swayed.margin < kept.margin - 0.03
+    assert kept.footprint == "sharp" and kept.margin > 0.015
+    assert swayed.floaters == 0 and swayed.footprint == "paper" and swayed.margin < kept.margin - 0.015
     assert kept.floaters >= 2_000  # measured 2,368 of the 10,000 grains left unlabelled (the clean room: 44)
     # a view pass elsewhere (Ray, the torch engine) keeps no probe pairs: the same statistics, the same scores
     elsewhere = fit_stage("fit-check-vote-reject", dusty, cams, data / "features", 1, 40, keep_pairs=False).choice
@@ -549,7 +585,7 @@ def test_a_probe_view_of_another_embedding_size_is_named_not_a_numpy_error(rooms
     data = tmp_path / "room"
     shutil.copytree(rooms["geometry"], data)
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
-    picks = probe_picks(cams, scale=probe_scale(scene))
+    picks = probe_picks(cams, space=probe_space(scene))
     first, later = cams[int(picks[0])].name, cams[int(picks[1])].name
     ids, feats = read_features(data / "features", later)
     write_features(data / "features", later, ids, np.concatenate([feats, feats[:, :3]], axis=1))
@@ -599,7 +635,7 @@ def test_the_probe_views_pairs_are_the_view_passs_own(rooms, mode):
     data = rooms["geometry"]
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     stage = fit_stage(mode, scene, cams, data / "features", 1, 10, keep_pairs=True)
-    assert sorted(stage.pairs) == sorted(probe_picks(cams, scale=probe_scale(scene)).tolist())
+    assert sorted(stage.pairs) == sorted(probe_picks(cams, space=probe_space(scene)).tolist())
     geometry = prepare_geometry(scene)
     job = ViewJob(data / "features", 1, 10, hook=Aggregator(stage.mode, scene).hook, by_gaussian=pairs_by_gaussian(stage.mode))
     computer = ViewComputer(geometry, job)
@@ -634,7 +670,7 @@ def test_probe_views_past_the_keep_cap_are_rendered_again_to_the_same_bytes(room
     data = rooms["render"]
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     whole = fit_stage("fit-check-vote-reject", scene, cams, data / "features", 1, 10, keep_pairs=True)
-    assert len(whole.pairs) == len(probe_picks(cams, scale=probe_scale(scene)))
+    assert len(whole.pairs) == len(probe_picks(cams, space=probe_space(scene)))
     per_view = [v.nbytes for v in whole.pairs.values()]
     two = fit_stage("fit-check-vote-reject", scene, cams, data / "features", 1, 10, keep_pairs=True, keep_bytes=2 * sum(per_view) // len(per_view) * 2)
     assert 1 <= len(two.pairs) < len(whole.pairs)

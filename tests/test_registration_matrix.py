@@ -19,7 +19,7 @@ from drsplat.defaults import AGGREGATE_MODES
 from drsplat.errors import InputError, UsageError
 from drsplat.registration import RegisterOptions, register
 from drsplat.registration.aggregate import mode_stages
-from drsplat.registration.fit import probe_picks, probe_scale, resolve_mode
+from drsplat.registration.fit import probe_picks, probe_space, resolve_mode
 from drsplat.scene import load_ply
 from drsplat.synthetic import write_dataset
 
@@ -114,7 +114,7 @@ def test_a_failed_run_leaves_its_checkpoint_only_when_it_holds_views(room, tmp_p
         register(scene, cams, copy, out, RegisterOptions(topk=10), show_progress=False)
     assert not out.exists()
     left = sorted(p.name for p in out.parent.iterdir()) if out.parent.exists() else []
-    if bad_view in probe_picks(cams, scale=probe_scale(scene)):
+    if bad_view in probe_picks(cams, space=probe_space(scene)):
         assert left == [] and "checkpoint" not in caplog.text
         return
     # the log, and the default mode's per-view statistics beside it (its -reject stage keeps some)

@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -87,7 +88,7 @@ from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import PAIR_BYTES, view_pairs_bound
 from drsplat.features.format import read_features_report, resample_nearest, seg_path
 from drsplat.registration.views import check_aspect, read_feature_headers
-from drsplat.scene import GaussianScene, scene_extent
+from drsplat.scene import GaussianScene, scene_ball
 from drsplat.utils import CancelToken
 
 log = logging.getLogger(__name__)
@@ -268,17 +269,31 @@ def scores_footprints(pair_weights: np.ndarray) -> bool:
     return bool(pair_weights.size and np.max(pair_weights) > 0)
 
 
-def probe_scale(scene: GaussianScene) -> float:
-    """The length that weighs a view's direction against its position in `pose_points`: the scene's
-    extent (`scene_extent`, robust to stray means), 1 for a scene without one. The scene's, not the
-    cameras': a view added or left out then moves no other view's point."""
-    extent = scene_extent(scene.means)
-    return extent if np.isfinite(extent) and extent > 0.0 else 1.0
+@dataclass(frozen=True)
+class ProbeSpace:
+    """Where the fit stage measures the views' poses: the scene's ball (`scene.scene_ball`), its centre, from which the
+    views are ranked (`ProbeOrder`), and its diameter `scale`, the length that weighs a view's direction against its
+    position (`pose_points`). The scene's, not the cameras': a view added or left out then moves no other view's point.
+    Both move with the world, so a rotated, moved or scaled copy of a capture (COLMAP's frame is arbitrary) probes
+    the same views (round 83b F1: the first probe was the view of the lowest world coordinates)."""
+
+    centre: np.ndarray  # [3]
+    scale: float = 1.0
+
+    @classmethod
+    def unit(cls) -> ProbeSpace:
+        return cls(np.zeros(3), 1.0)
+
+
+def probe_space(scene: GaussianScene) -> ProbeSpace:
+    """The scene's `ProbeSpace`; a scale of 1 for a scene without an extent."""
+    centre, radius = scene_ball(scene.means)
+    return ProbeSpace(centre, 2.0 * radius if np.isfinite(radius) and radius > 0.0 else 1.0)
 
 
 def pose_points(views: Sequence[Camera], scale: float = 1.0) -> np.ndarray:
     """[V, 6] float64 each view's pose as a point: its camera centre c and its viewing direction d
-    (the camera's +z in the world, R's last row) times `scale` (`probe_scale`):
+    (the camera's +z in the world, R's last row) times `scale` (`ProbeSpace`):
 
         x_v = (c_v, scale·d_v)
 
@@ -293,18 +308,26 @@ def pose_points(views: Sequence[Camera], scale: float = 1.0) -> np.ndarray:
     return np.nan_to_num(points, nan=0.0, posinf=0.0, neginf=0.0)
 
 
+PROBE_TIE = 1e-9  # relative: distances this close are a tie (`ProbeOrder`), which the world's rounding must not decide
+
+
 @dataclass
 class ProbeOrder:
     """The order the fit stage probes the views in: farthest-point order of their poses
-    (`pose_points`) over the views that score. The first is the lowest pose (compared coordinate by
-    coordinate); each next one the pose farthest from the nearest of the views probed so far that
-    scored (`scores_footprints`); a view that did not score is passed over and moves no distance.
-    Ties (a symmetric capture) go to the lower pose, then the name and `Camera.exact_key`: never the
-    list's order. So the views probed depend on the cameras alone: not on the order a file lists
-    them in (round 41: a shuffled transforms.json took other probe views and flipped the footprint,
-    seg mIoU vol 0.594 -> 0.426), nor on their names, nor on views that see nothing (round 49: a
-    room's views renamed, then one blind camera added, flipped the footprint twice, 0.642 -> 0.498
-    -> 0.642, when the probes were evenly spaced in name order)."""
+    (`pose_points`) over the views that score. The first is the view whose camera lies farthest from
+    the scene's centre (`ProbeSpace`); each next one the pose farthest from the nearest of the views
+    probed so far that scored (`scores_footprints`); a view that did not score is passed over and
+    moves no distance. Distances within PROBE_TIE of each other tie, and ties go to the view farther
+    from the centre, then to the lower pose (compared coordinate by coordinate), the name and
+    `Camera.exact_key`: never the list's order. Only an exactly symmetric capture (a ring of cameras
+    around the centre) gets to the pose, where nothing but the world's frame, the names or the list
+    can tell its views apart. So the views probed depend on the cameras and the scene alone: not on the order
+    a file lists them in (round 41: a shuffled transforms.json took other probe views and flipped
+    the footprint, seg mIoU vol 0.594 -> 0.426), nor on their names, nor on views that see nothing
+    (round 49: a room's views renamed, then one blind camera added, flipped the footprint twice,
+    0.642 -> 0.498 -> 0.642, when the probes were evenly spaced in name order), nor on the world's
+    frame (round 83b F1: the first probe was the lowest pose, compared coordinate by coordinate,
+    and four of six rotations of that room flipped it again)."""
 
     points: np.ndarray  # [V, 6] pose_points
     rank: np.ndarray  # [V] each view's place in the tie order
@@ -312,9 +335,13 @@ class ProbeOrder:
     open: np.ndarray  # [V] bool: not probed yet
 
     @classmethod
-    def of(cls, views: Sequence[Camera], scale: float = 1.0) -> ProbeOrder:
-        points = pose_points(views, scale)
-        ties = sorted(range(len(views)), key=lambda j: (tuple(points[j].tolist()), views[j].name, views[j].exact_key()))
+    def of(cls, views: Sequence[Camera], space: ProbeSpace | None = None) -> ProbeOrder:
+        space = ProbeSpace.unit() if space is None else space
+        points = pose_points(views, space.scale)
+        with np.errstate(over="ignore", invalid="ignore"):
+            away = np.round(np.linalg.norm(points[:, :3] - space.centre, axis=1) / space.scale, -round(math.log10(PROBE_TIE)))
+        away = np.nan_to_num(away, nan=np.inf)
+        ties = sorted(range(len(views)), key=lambda j: (-away[j], tuple(points[j].tolist()), views[j].name, views[j].exact_key()))
         rank = np.empty(len(views), np.int64)
         rank[ties] = np.arange(len(views))
         return cls(points, rank, np.full(len(views), np.inf), np.ones(len(views), bool))
@@ -324,7 +351,8 @@ class ProbeOrder:
         candidates = np.flatnonzero(self.open)
         if candidates.size == 0:
             return None
-        far = candidates[self.gap[candidates] == self.gap[candidates].max()]
+        gaps = self.gap[candidates]
+        far = candidates[gaps >= gaps.max() * (1.0 - PROBE_TIE)]
         return int(far[np.argmin(self.rank[far])])
 
     def probed(self, view: int, scored: bool) -> None:
@@ -335,10 +363,10 @@ class ProbeOrder:
                 self.gap = np.minimum(self.gap, np.linalg.norm(self.points - self.points[view], axis=1))
 
 
-def probe_picks(views: Sequence[Camera], count: int = FIT_PROBES, scale: float = 1.0) -> np.ndarray:
+def probe_picks(views: Sequence[Camera], count: int = FIT_PROBES, space: ProbeSpace | None = None) -> np.ndarray:
     """[min(count, V)] indices into `views` of the probe views, in the order they are scored, when
-    every view probed scores (`ProbeOrder`; scale: `probe_scale` of the scene)."""
-    order = ProbeOrder.of(views, scale)
+    every view probed scores (`ProbeOrder`; space: `probe_space` of the scene)."""
+    order = ProbeOrder.of(views, space)
     picks = []
     while len(picks) < count and (view := order.next()) is not None:
         order.probed(view, True)
@@ -695,7 +723,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
     support = SurfaceSupport.zeros(geometry.num_gaussians) if rejects else None  # the probe views' statistics, folded in probe order
     computer = ViewComputer(geometry, ViewJob(features_dir, level, topk, engine, device, hook=hook, cull=cull,
                                               by_gaussian=keep_pairs and pairs_by_gaussian(mode), near=near))
-    order = ProbeOrder.of(views, probe_scale(scene))
+    order = ProbeOrder.of(views, probe_space(scene))
     picks: list[int] = []  # the views probed, in probe order
     scores: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
     held: dict[str, list[float]] = {footprint: [] for footprint in FOOTPRINTS}
