@@ -1239,13 +1239,14 @@ def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
 
 
 BALL_TRIM = 0.1  # `scene_ball`'s centre is the mean of all but this share of the means farthest from the previous one
-BALL_ROUNDS = 3
+BALL_ROUNDS = 8  # at most; the trimmed mean stops when it moves less than BALL_SETTLED of the spread
+BALL_SETTLED = 1e-6
 
 
 def scene_ball(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> tuple[np.ndarray, float]:
     """(centre [3], radius) of the means [N, 3] (finite and within MAX_COORDINATE; every k-th, at most `sample`):
-    from the plain mean, BALL_ROUNDS times the mean of the means within the (1 − BALL_TRIM) quantile of distances to
-    the previous centre, and the radius within which all but ⌈EXTENT_OUTLIERS·n⌉ of them lie (all of fewer than
+    from the plain mean, the mean of the means within the (1 − BALL_TRIM) quantile of distances to the previous centre,
+    again until it moves less than BALL_SETTLED of that quantile (at most BALL_ROUNDS times), and the radius within which all but ⌈EXTENT_OUTLIERS·n⌉ of them lie (all of fewer than
     EXTENT_TRIM_FROM). Both move with the world: a rotation or translation of the means moves the centre alike and
     keeps the radius, a scale scales both, which `scene_extent`'s axis-aligned box does not (round 83b F1: the fit
     stage's probe views changed with the world's orientation). A stray mean far away drags the first mean toward it,
@@ -1257,10 +1258,13 @@ def scene_ball(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> tuple[np.ndarr
     if not n:
         return np.zeros(3), 0.0
     centre = rows.mean(axis=0)
+    keep = max(1, math.ceil((1.0 - BALL_TRIM) * n))
     for _ in range(BALL_ROUNDS):
         dist = np.linalg.norm(rows - centre, axis=1)
-        keep = max(1, math.ceil((1.0 - BALL_TRIM) * n))
-        centre = rows[np.argpartition(dist, keep - 1)[:keep]].mean(axis=0)
+        near = np.argpartition(dist, keep - 1)[:keep]
+        centre, moved = rows[near].mean(axis=0), centre
+        if np.linalg.norm(centre - moved) <= BALL_SETTLED * dist[near].max():
+            break
     dist = np.linalg.norm(rows - centre, axis=1)
     k = math.ceil(EXTENT_OUTLIERS * n) if n >= EXTENT_TRIM_FROM else 0
     return centre, float(np.partition(dist, n - 1 - k)[n - 1 - k])

@@ -964,3 +964,33 @@ def test_a_ply_cut_short_while_it_is_read_is_one_error_naming_the_rows(tmp_path,
     monkeypatch.setattr(ds, "READ_BLOCK_BYTES", 100 * rows.dtype.itemsize)
     with pytest.raises(InputError, match=r"s\.ply.*changed while it was read: rows 200 to 300 of 300"):
         rows.array()
+
+
+def test_the_scene_ball_turns_moves_and_scales_with_the_world_and_ignores_a_stray_mean():
+    """`scene_ball` (the fit stage's probe space, round 83b F1): a turned and shifted copy of the means has the turned and
+    shifted centre and the same radius, a scaled copy both scaled (which `scene_extent`'s axis-aligned box is not: its
+    diagonal changes with a turn); a stray mean 1e12 away among 20,000 moves neither; no mean gives ((0, 0, 0), 0)."""
+    from drsplat.scene import scene_ball
+
+    rng = np.random.default_rng(3)
+    means = rng.normal(size=(20_000, 3)) * [4.0, 1.0, 0.3] + [2.0, -1.0, 5.0]
+    centre, radius = scene_ball(means)
+    assert np.linalg.norm(centre - [2.0, -1.0, 5.0]) < 0.05 and 8.0 < radius < 20.0
+    turn = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    shift = np.array([30.0, -5.0, 12.0])
+    turned, r_turned = scene_ball(means @ turn.T + shift)
+    np.testing.assert_allclose(turned, centre @ turn.T + shift, atol=1e-9)
+    assert r_turned == pytest.approx(radius, rel=1e-12)
+    scaled, r_scaled = scene_ball(1e3 * means)
+    np.testing.assert_allclose(scaled, 1e3 * centre, rtol=1e-12)
+    assert r_scaled == pytest.approx(1e3 * radius, rel=1e-12)
+    from drsplat.scene import scene_extent
+
+    assert scene_extent(means @ turn.T) != pytest.approx(scene_extent(means), rel=1e-3)  # why the box is not used
+    stray = np.vstack([means, [[1e12, 0.0, 0.0]]])
+    s_centre, s_radius = scene_ball(stray)
+    assert np.linalg.norm(s_centre - centre) < 0.01 and s_radius == pytest.approx(radius, rel=1e-3)
+    empty_centre, empty_radius = scene_ball(np.zeros((0, 3)))
+    assert empty_radius == 0.0 and not empty_centre.any()
+    few, r_few = scene_ball(np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]))  # under EXTENT_TRIM_FROM: every mean counts
+    assert r_few > 0.0

@@ -285,9 +285,12 @@ class ProbeSpace:
         return cls(np.zeros(3), 1.0)
 
 
+PROBE_BALL_SAMPLE = 1 << 16  # means that make the probe space's ball (every k-th): 0.33 s for a 1M sample of flowers, 30x less
+
+
 def probe_space(scene: GaussianScene) -> ProbeSpace:
     """The scene's `ProbeSpace`; a scale of 1 for a scene without an extent."""
-    centre, radius = scene_ball(scene.means)
+    centre, radius = scene_ball(scene.means, PROBE_BALL_SAMPLE)
     return ProbeSpace(centre, 2.0 * radius if np.isfinite(radius) and radius > 0.0 else 1.0)
 
 
