@@ -1426,6 +1426,22 @@ def test_the_near_plane_decision_renders_nothing_without_a_band_and_warns_withou
     assert "(1 view with no image file)" in caplog.text, caplog.text
 
 
+def test_a_capture_nearer_than_inrias_plane_is_not_told_to_take_it(tiny_seed0, caplog):
+    """Round 83b F2: the whole capture scaled by 0.01 (scene and cameras together) puts most Gaussians 0.01-0.2 in front
+    of every camera; without images the warning advised `--near-plane inria`, a plane that culls most of such a capture
+    (INRIA's rasterizer could not have trained it at that scale). It now says the capture lies nearer than INRIA's plane
+    and that the plane is in scene units."""
+    import drsplat.frames as frames
+
+    scene, _, cams, _ = tiny_seed0
+    small = dataclasses.replace(scene, means=(0.01 * scene.means).astype(np.float32), log_scales=(scene.log_scales + np.log(0.01)).astype(np.float32))
+    blind = [dataclasses.replace(c, t=0.01 * np.asarray(c.t), image_path=None) for c in cams]
+    with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+        assert frames.near_plane_as_trained(small, blind, what="SCENE") == frames.NEAR
+    assert "nearer than INRIA's near plane (0.2), so INRIA's rasterizer did not train it at this scale" in caplog.text, caplog.text
+    assert "--near-plane inria" not in caplog.text and "scale both up together" in caplog.text
+
+
 @pytest.mark.parametrize("plane", [-1, 0, float("nan"), float("inf"), "inria", "AUTO", None, 10**400, True])
 def test_a_near_plane_given_to_the_python_api_is_auto_or_a_positive_finite_depth(tiny_seed0, plane, monkeypatch):
     """Round 67a F8: `cameras_and_plane_as_trained` took -1, 0, NaN and inf as the plane (and rendered the principal-point
