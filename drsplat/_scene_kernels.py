@@ -141,3 +141,38 @@ def gather_rows(a: np.ndarray, ids: np.ndarray) -> np.ndarray:
     if out.size:
         _gather_rows_kernel(flat, np.ascontiguousarray(ids, np.int64), out)
     return out.reshape((ids.shape[0],) + a.shape[1:])
+
+
+BALL_BLOCK = 1 << 16  # rows a partial sum of `ball_sums_kernel` holds: fixed, so the sums do not depend on the threads
+
+
+@numba.njit(parallel=True, cache=True)
+def ball_distances_kernel(means, centre, max_coordinate, out):  # pragma: no cover - jitted
+    """out[i] = float32(|means[i] − centre|²), the square summed in float64 as ((dx² + dy²) + dz²); +inf for a row
+    not finite or beyond ±max_coordinate (not counted). means: [N, 3] float32 or float64; centre: [3] float64."""
+    for i in numba.prange(means.shape[0]):
+        x, y, z = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+        if abs(x) <= max_coordinate and abs(y) <= max_coordinate and abs(z) <= max_coordinate:
+            dx, dy, dz = x - centre[0], y - centre[1], z - centre[2]
+            out[i] = np.float32((dx * dx + dy * dy) + dz * dz)
+        else:
+            out[i] = np.inf
+
+
+@numba.njit(parallel=True, cache=True)
+def ball_sums_kernel(means, dist, limit, out):  # pragma: no cover - jitted
+    """out = (Σx, Σy, Σz, count) over the rows with dist[i] ≤ limit (float32), as float64: a partial sum per block
+    of BALL_BLOCK rows (in row order), the blocks then added in order, so the result does not depend on the threads."""
+    blocks = (means.shape[0] + BALL_BLOCK - 1) // BALL_BLOCK
+    parts = np.zeros((blocks, 4))
+    for b in numba.prange(blocks):
+        for i in range(b * BALL_BLOCK, min((b + 1) * BALL_BLOCK, means.shape[0])):
+            if dist[i] <= limit:
+                parts[b, 0] += np.float64(means[i, 0])
+                parts[b, 1] += np.float64(means[i, 1])
+                parts[b, 2] += np.float64(means[i, 2])
+                parts[b, 3] += 1.0
+    out[:] = 0.0
+    for b in range(blocks):
+        for j in range(4):
+            out[j] += parts[b, j]

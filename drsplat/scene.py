@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat._scene_kernels import bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel, unit_quats64_kernel
+from drsplat._scene_kernels import (ball_distances_kernel, ball_sums_kernel, bounded_rows_kernel, packed_frames_kernel, scaled_frames_kernel,
+                                    unit_quats64_kernel)
 from drsplat.errors import InputError, hidden_character
 from drsplat.utils import clipped, spread_rows, unreachable_cause, write_bytes_atomic
 
@@ -1239,35 +1240,95 @@ def scene_extent(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> float:
 
 
 BALL_TRIM = 0.1  # `scene_ball`'s centre is the mean of all but this share of the means farthest from the previous one
-BALL_ROUNDS = 8  # at most; the trimmed mean stops when it moves less than BALL_SETTLED of the spread
+BALL_ROUNDS = 5  # at most; the trimmed mean stops when it moves less than BALL_SETTLED of the spread
 BALL_SETTLED = 1e-6
+BALL_CHUNK = 1 << 20  # means `scene_ball_reference` reads at once
 
 
-def scene_ball(means: np.ndarray, sample: int = EXTENT_SAMPLE) -> tuple[np.ndarray, float]:
-    """(centre [3], radius) of the means [N, 3] (finite and within MAX_COORDINATE; every k-th, at most `sample`):
-    from the plain mean, the mean of the means within the (1 − BALL_TRIM) quantile of distances to the previous centre,
-    again until it moves less than BALL_SETTLED of that quantile (at most BALL_ROUNDS times), and the radius within which all but ⌈EXTENT_OUTLIERS·n⌉ of them lie (all of fewer than
-    EXTENT_TRIM_FROM). Both move with the world: a rotation or translation of the means moves the centre alike and
-    keeps the radius, a scale scales both, which `scene_extent`'s axis-aligned box does not (round 83b F1: the fit
-    stage's probe views changed with the world's orientation). A stray mean far away drags the first mean toward it,
-    is then the farthest, and is left out of the next. ((0, 0, 0), 0) without any mean."""
-    rows = np.asarray(spread_rows(means, max(sample, 1)), np.float64)
-    with np.errstate(invalid="ignore"):
-        rows = rows[(np.abs(rows) <= MAX_COORDINATE).all(axis=1)]
-    n = rows.shape[0]
-    if not n:
+def scene_ball(means: np.ndarray) -> tuple[np.ndarray, float]:
+    """(centre [3], radius) of the means [N, 3] (those finite and within MAX_COORDINATE, every one of them): from the
+    plain mean, the mean of the means within the (1 − BALL_TRIM) quantile of distances to the previous centre, again
+    until it moves less than BALL_SETTLED of that quantile (at most BALL_ROUNDS times), and the radius within which all
+    but ⌈EXTENT_OUTLIERS·n⌉ of them lie (all of fewer than EXTENT_TRIM_FROM); squared distances compared in float32.
+    Both move with the world: a rotation or translation of the means moves the centre alike and keeps the radius, a
+    scale scales both, which `scene_extent`'s axis-aligned box does not (round 83b F1: the fit stage's probe views
+    changed with the world's orientation); and neither depends on the rows' order beyond rounding, which a sample of
+    every k-th mean did (round 84a F3). A stray mean far away drags the first mean toward it, is then the farthest, and
+    is left out of the next. The numba kernels (`ball_distances_kernel`, `ball_sums_kernel`; 8 bytes a mean) are
+    `scene_ball_reference`'s arithmetic. ((0, 0, 0), 0) without any mean."""
+    means = np.asarray(means)
+    if means.dtype not in (np.float32, np.float64):
+        means = means.astype(np.float64)
+    dist = np.empty(means.shape[0], np.float32)
+    sums = np.zeros(4)
+
+    def within(centre: np.ndarray, limit: float) -> np.ndarray:
+        ball_distances_kernel(means, centre, MAX_COORDINATE, dist)
+        ball_sums_kernel(means, dist, np.float32(limit), sums)
+        return sums.copy()
+
+    counted = within(np.zeros(3), np.finfo(np.float32).max)
+    count = int(counted[3])
+    if not count:
         return np.zeros(3), 0.0
-    centre = rows.mean(axis=0)
-    keep = max(1, math.ceil((1.0 - BALL_TRIM) * n))
+    centre = counted[:3] / count
+    keep = max(1, math.ceil((1.0 - BALL_TRIM) * count))
     for _ in range(BALL_ROUNDS):
-        dist = np.linalg.norm(rows - centre, axis=1)
-        near = np.argpartition(dist, keep - 1)[:keep]
-        centre, moved = rows[near].mean(axis=0), centre
-        if np.linalg.norm(centre - moved) <= BALL_SETTLED * dist[near].max():
+        ball_distances_kernel(means, centre, MAX_COORDINATE, dist)
+        limit = float(np.partition(dist, keep - 1)[keep - 1])
+        ball_sums_kernel(means, dist, np.float32(limit), sums)
+        centre, moved = sums[:3] / sums[3], centre
+        if np.linalg.norm(centre - moved) <= BALL_SETTLED * math.sqrt(limit):
             break
-    dist = np.linalg.norm(rows - centre, axis=1)
-    k = math.ceil(EXTENT_OUTLIERS * n) if n >= EXTENT_TRIM_FROM else 0
-    return centre, float(np.partition(dist, n - 1 - k)[n - 1 - k])
+    k = math.ceil(EXTENT_OUTLIERS * count) if count >= EXTENT_TRIM_FROM else 0
+    ball_distances_kernel(means, centre, MAX_COORDINATE, dist)
+    return centre, math.sqrt(float(np.partition(dist, count - 1 - k)[count - 1 - k]))
+
+
+def scene_ball_reference(means: np.ndarray) -> tuple[np.ndarray, float]:
+    """`scene_ball` in numpy, a chunk of BALL_CHUNK rows at a time (the test's reference)."""
+    means = np.asarray(means)
+    total, count = np.zeros(3), 0
+    for rows in _ball_chunks(means):
+        total += rows.sum(axis=0)
+        count += rows.shape[0]
+    if not count:
+        return np.zeros(3), 0.0
+    centre = total / count
+    keep = max(1, math.ceil((1.0 - BALL_TRIM) * count))
+    for _ in range(BALL_ROUNDS):
+        limit = _ball_quantile(means, centre, keep - 1)
+        total, within = np.zeros(3), 0
+        for rows in _ball_chunks(means):
+            near = _squared_distances(rows, centre) <= limit
+            total += rows[near].sum(axis=0)
+            within += int(near.sum())
+        centre, moved = total / within, centre
+        if np.linalg.norm(centre - moved) <= BALL_SETTLED * math.sqrt(limit):
+            break
+    k = math.ceil(EXTENT_OUTLIERS * count) if count >= EXTENT_TRIM_FROM else 0
+    return centre, math.sqrt(_ball_quantile(means, centre, count - 1 - k))
+
+
+def _ball_chunks(means: np.ndarray):
+    """The rows of `means` [N, 3] that `scene_ball` counts (finite, within MAX_COORDINATE), BALL_CHUNK at a time, float64."""
+    for start in range(0, means.shape[0], BALL_CHUNK):
+        rows = np.asarray(means[start:start + BALL_CHUNK], np.float64)
+        with np.errstate(invalid="ignore"):
+            yield rows[(np.abs(rows) <= MAX_COORDINATE).all(axis=1)]
+
+
+def _squared_distances(rows: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """[R] float32 |row − centre|², summed in float64 as ((dx² + dy²) + dz²) (the kernel's order)."""
+    d = rows - centre
+    return ((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]).astype(np.float32)
+
+
+def _ball_quantile(means: np.ndarray, centre: np.ndarray, place: int) -> float:
+    """The `place`-th smallest squared distance (float32) of the counted means to `centre`."""
+    dist = np.concatenate([_squared_distances(rows, centre) for rows in _ball_chunks(means)])
+    dist.partition(place)
+    return float(dist[place])
 
 
 def _finite_values(stored: np.ndarray) -> np.ndarray:

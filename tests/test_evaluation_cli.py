@@ -435,6 +435,25 @@ def test_eval_segmentation_argmax_runs_over_every_queried_label_as_opengaussian(
     loc = {rule: next(x for x in doc["reports"] if x["task"] == "loc") for rule, doc in docs.items()}
     assert loc["queried"] == loc["present"], "localisation never averages an absent label"
 
+    # round 84a F1: an exact tie goes to the lower label, as OpenGaussian's argmax gives it: a 'rug' listed first with the
+    # floor's very embedding takes every floor Gaussian (the absent labels had been put after the present ones)
+    np.save(tmp_path / "emb_tie.npy", np.vstack([emb[r["names"].index("floor")], emb]).astype(np.float32))
+    (tmp_path / "names_tie.json").write_text(json.dumps(["rug", *r["names"]]))
+    np.save(tmp_path / "gt_tie.npy", np.where(gt >= 0, gt + 1, -1).astype(np.int32))
+    js = tmp_path / "tie.json"
+    assert main(["eval", "iou", str(r["ply"]), "--gt-labels", str(tmp_path / "gt_tie.npy"), "--original", str(r["ds"] / "scene.ply"),
+                 "--label-names", str(tmp_path / "names_tie.json"), "--text-embeddings", str(tmp_path / "emb_tie.npy"),
+                 "--weighting", "count,voxel", "--voxel-resolution", "24", "--task", "seg", "--json", str(js)]) == 0
+    count, voxel = json.loads(js.read_text())["reports"]
+    assert (count["weighting"], voxel["weighting"]) == ("count", "voxel")
+    assert count["per_label"]["floor"]["iou"] == 0.0 and voxel["per_label"]["floor"]["iou"] == 0.0
+    tie = np.full((original.num_gaussians, 9), -np.inf)
+    tie[index] = np.where(field.assigned()[:, None], field.scores(np.load(tmp_path / "emb_tie.npy")), -np.inf)
+    pred, gt_t = np.argmax(tie, axis=1), np.where(gt >= 0, gt + 1, -1)
+    pred[~np.isfinite(tie).any(axis=1)] = -1
+    ious = [np.sum((gt_t == l) & (pred == l)) / np.sum(((gt_t == l) | (pred == l)) & (gt_t >= 0)) for l in np.unique(gt_t[gt_t >= 0])]
+    assert count["mIoU"] == pytest.approx(np.mean(ious), abs=1e-12)
+
 
 def test_eval_cli_rejects_bad_options(registered, capsys):
     r = registered

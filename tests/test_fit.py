@@ -404,6 +404,10 @@ def test_the_probe_views_and_the_fit_do_not_depend_on_the_worlds_frame(rooms):
     scene, cams = load_ply(data / "scene.ply"), load_cameras(data)
     names = [cams[i].name for i in probe_picks(cams, space=probe_space(scene))]
     base = fit_stage("fit-check-vote-reject", scene, cams, data / "features", 1, 40).choice
+    order = np.random.default_rng(5).permutation(scene.num_gaussians)  # round 84a F3: nor on the Gaussians' order in the file
+    shuffled = dataclasses.replace(scene, **{f.name: getattr(scene, f.name)[order] for f in dataclasses.fields(scene)
+                                             if isinstance(getattr(scene, f.name), np.ndarray) and getattr(scene, f.name).shape[:1] == (scene.num_gaussians,)})
+    assert [cams[i].name for i in probe_picks(cams, space=probe_space(shuffled))] == names
     for angle, axis, shift, scale in ((np.pi / 2, (0, 0, 1), (0, 0, 0), 1.0), (2.1, (1, 2, 3), (40.0, -7.0, 3.0), 1.0),
                                       (0.7, (-1, 0.3, 0.2), (100.0, 0, 0), 1.0), (1.3, (0, 1, 0), (0, 0, 0), 1e3), (0.0, (0, 0, 1), (0, 0, 0), 1e-2)):
         moved, views = _world_moved(scene, cams, angle, axis, shift, scale)

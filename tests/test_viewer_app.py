@@ -544,6 +544,10 @@ def test_a_threshold_dragged_over_a_scene_too_large_for_one_frame_shows_at_every
         assert np.abs(images[0].astype(int) - images[1].astype(int)).max() > 30, "each step of the drag is drawn"
         _settle(app)
         assert not app.moving and r.times.drawn == r.num, "once the drag ends, the still frame of the whole scene"
+        key = app._drawn_key
+        assert state.set_mode(state.mode)  # round 84a F4: the mode clicked again changed nothing, yet drew a moving frame
+        app.run(max_frames=1)
+        assert not app.moving and app._drawn_key == key, "a change that changes nothing draws nothing"
 
         r.moving_budget = r.num  # a scene drawn whole within a moving frame's time: a still frame at once, as before
         assert state.set_threshold(0.5)

@@ -8,6 +8,7 @@ Window code runs on any GLFW platform, including the null platform used by the t
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import logging
 import math
 import os
@@ -195,6 +196,7 @@ class ViewerApp:
         self._scene_version = -1
         self._budget_calibrated = False
         self._style_version = -1
+        self._style_digest: bytes | None = None  # of the style the renderer holds
         self._file_dialog = None
         self.panels = Panels()
         state.settings.reset_paths(state.scene_path)
@@ -259,11 +261,17 @@ class ViewerApp:
             self._scene_version = state.scene_version
             self._budget_calibrated = False
             self._style_version = -1
+            self._style_digest = None
             self._drawn_key = None
             self._still = None
         if self.renderer is not None and state.style_version != self._style_version:
-            self.renderer.set_style(state.style())
             self._style_version = state.style_version
+            style = state.style()
+            digest = hashlib.blake2b(np.ascontiguousarray(style), digest_size=16).digest()
+            if digest == self._style_digest:  # the mode clicked again, a threshold moved in colour mode: nothing to draw (round 84a F4)
+                return
+            self._style_digest = digest
+            self.renderer.set_style(style)
             self._drawn_key = None
             self._still = None  # its projection holds the old style: a still frame in progress starts again
             if self._budget_calibrated and self.renderer.moving_budget < self.renderer.num:

@@ -463,6 +463,12 @@ def load_eval_scene(args: argparse.Namespace):
     return original, field, index
 
 
+def in_report_order(reports: list, weightings: tuple[str, ...]) -> list:
+    """Reports in `evaluate_scene`'s order: each weighting's localisation then segmentation, the voxel ones last."""
+    place = {w: (w == "voxel", k) for k, w in enumerate(weightings)}
+    return sorted(reports, key=lambda r: (place[r.weighting], r.task != "loc"))
+
+
 def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], index: np.ndarray | None = None,
                         saved_labels: Path | None = None) -> int:
     from drsplat.eval.metrics import evaluate_scene, expand_scores, format_curve, format_reports
@@ -478,18 +484,25 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
     gt_sub = np.where(gt >= 0, remap[np.maximum(gt, 0)], -1)
     assigned = assigned_rows(args.registered, field)
     tasks = ("loc", "seg") if args.task == "both" else (args.task,)
-    absent = [i for i in range(len(names)) if i not in set(present)] if "seg" in tasks and args.argmax_over == "queried" else []
-    queried = present + absent  # the absent labels only compete in the segmentation's argmax (localisation never averages them)
-    if args.text_embeddings is None:
-        scores = label_scores(args, field, [names[i] for i in queried])
+    every = "seg" in tasks and args.argmax_over == "queried" and len(present) < len(names)
+    absent = [i for i in range(len(names)) if i not in set(present)] if every else []
+    if args.text_embeddings is None and not every:
+        scores = label_scores(args, field, sub_names)
     else:
-        scores = label_scores(args, field, names)[:, queried]
+        scores = label_scores(args, field, names)  # every queried label, in the names' order: an exact tie goes to the lower label
     if index is not None:
         scores = expand_scores(scores, index, scene.num_gaussians)
         registered, assigned = assigned, np.zeros(scene.num_gaussians, bool)
         assigned[index] = registered
-    reports = evaluate_scene(scene, scores[:, :len(present)], gt_sub, sub_names, tasks, parse_weightings(args.weighting), parse_taus(args.taus),
-                             args.voxel_resolution, args.voxel_empty, assigned=assigned, absent_scores=scores[:, len(present):] if absent else None)
+    present_scores = scores if scores.shape[1] == len(sub_names) else scores[:, keep]
+    weightings, taus = parse_weightings(args.weighting), parse_taus(args.taus)
+    rest = tuple(t for t in tasks if not (every and t == "seg"))
+    reports = evaluate_scene(scene, present_scores, gt_sub, sub_names, rest, weightings, taus, args.voxel_resolution, args.voxel_empty,
+                             assigned=assigned) if rest else []
+    if every:  # OpenGaussian's protocol: the argmax over every queried label, the means over the present ones (round 76b F1)
+        segmentation = evaluate_scene(scene, scores, gt, names, ("seg",), weightings, taus, args.voxel_resolution, args.voxel_empty,
+                                      assigned=assigned)
+        reports = in_report_order(reports + [r.restricted(keep) for r in segmentation], weightings)
     check_defined(reports, sub_names)
     stream = table_stream(args.json, saved_labels)
     absent_names = [names[i] for i in absent]

@@ -20,8 +20,10 @@ noise); in localisation they count as false positives when selected.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numba
@@ -59,6 +61,16 @@ class IoUReport:
     @property
     def valid(self) -> np.ndarray:
         return np.isfinite(self.iou)
+
+    def restricted(self, labels: Sequence[int]) -> IoUReport:
+        """This report of `labels` (indices into label_names) alone: their IoU and accuracy as measured, the means over
+        them. A segmentation's argmax over more labels than the ground truth holds is averaged over the present ones
+        so (OpenGaussian's `eval_scannet.py`); a localisation's curve is of all its labels, so only a segmentation's."""
+        if self.curve:
+            raise ValueError("a localisation report's curve averages all its labels: restrict the labels it is made of instead")
+        keep = list(labels)
+        return dataclasses.replace(self, label_names=[self.label_names[i] for i in keep], iou=self.iou[keep],
+                                   acc=None if self.acc is None else self.acc[keep])
 
     @property
     def miou(self) -> float:
@@ -242,31 +254,17 @@ def localisation_report(scores: np.ndarray, gt_labels: np.ndarray, weights: np.n
 
 
 def segmentation_report(scores: np.ndarray, gt_labels: np.ndarray, weights: np.ndarray, label_names: list[str],
-                        weighting: str = "volume", nonfinite_weights: int = 0, absent_scores: np.ndarray | None = None) -> IoUReport:
+                        weighting: str = "volume", nonfinite_weights: int = 0) -> IoUReport:
     """Segmentation: every Gaussian takes argmax_l score_il; mIoU and mAcc (`segmentation_iou`).
 
     scores: [N, L]; gt_labels: [N] int (−1 none, ignored); weights: [N]. A row with no finite
-    score predicts −1 (counts against the label of that Gaussian). absent_scores: [N, E] scores of
-    labels queried but absent from the ground truth: the argmax runs over all L + E labels
-
-        pred_i = argmax over [score_i1 .. score_iL, absent_i1 .. absent_iE],
-
-    a Gaussian an absent label wins is a miss for its own label, and the means stay over the L
-    labels (OpenGaussian's `eval_scannet.py`: the argmax over every target class, the mean over
-    those present).
+    score predicts −1 (counts against the label of that Gaussian).
     """
-    s, nonfinite = _clean_scores(with_absent(scores, absent_scores))
+    s, nonfinite = _clean_scores(scores)
     pred = argmax_labels(s)
-    iou, acc = segmentation_iou(pred, gt_labels, weights, np.shape(scores)[1])
+    iou, acc = segmentation_iou(pred, gt_labels, weights, s.shape[1])
     return IoUReport(task="seg", weighting=weighting, label_names=list(label_names), iou=iou, acc=acc,
                      nonfinite=nonfinite + nonfinite_weights)
-
-
-def with_absent(scores: np.ndarray, absent_scores: np.ndarray | None) -> np.ndarray:
-    """[N, L] scores and [N, E] scores of labels absent from the ground truth -> [N, L + E] (the argmax's candidates)."""
-    if absent_scores is None or absent_scores.shape[1] == 0:
-        return scores
-    return np.concatenate([np.asarray(scores), np.asarray(absent_scores, np.asarray(scores).dtype)], axis=1)
 
 
 def argmax_labels(scores: np.ndarray) -> np.ndarray:
@@ -460,20 +458,18 @@ def voxel_localisation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: 
     return IoUReport(task="loc", weighting="voxel", label_names=list(label_names), iou=iou, threshold=float(threshold), nonfinite=nonfinite)
 
 
-def voxel_segmentation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: np.ndarray, label_names: list[str],
-                              absent_scores: np.ndarray | None = None) -> IoUReport:
+def voxel_segmentation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: np.ndarray, label_names: list[str]) -> IoUReport:
     """Segmentation IoU/Acc on voxels: the voxel label fields of argmax predictions and of the ground truth.
 
     Only Gaussians with a ground-truth label take part (as in `segmentation_report`), so both
-    fields cover the same occupied voxels and differ only in their labels. absent_scores: [N, E] as
-    in `segmentation_report`; a voxel whose mass an absent label holds most is a miss.
+    fields cover the same occupied voxels and differ only in their labels.
     """
-    s, nonfinite = _clean_scores(with_absent(scores, absent_scores))
+    s, nonfinite = _clean_scores(scores)
     gt = np.asarray(gt_labels, np.int64)
-    num_labels = np.shape(scores)[1]
+    num_labels = s.shape[1]
     pred = np.where(gt >= 0, argmax_labels(s), -1)
     gv = setup.label_field(np.where(gt < num_labels, gt, -1), num_labels)
-    pv = setup.label_field(pred, s.shape[1])
+    pv = setup.label_field(pred, num_labels)
     iou, acc = segmentation_iou(pv, gv, np.ones(gv.shape[0]), num_labels)
     return IoUReport(task="seg", weighting="voxel", label_names=list(label_names), iou=iou, acc=acc, nonfinite=nonfinite)
 
@@ -565,8 +561,7 @@ def expand_scores(scores: np.ndarray, index: np.ndarray, num_original: int, fill
 
 def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names: list[str], tasks: tuple[str, ...] = ("loc", "seg"),
                    weightings: tuple[str, ...] = ("volume", "count"), taus: np.ndarray | None = None,
-                   voxel_resolution: int = 96, voxel_empty_threshold: float = 0.01, assigned: np.ndarray | None = None,
-                   absent_scores: np.ndarray | None = None) -> list[IoUReport]:
+                   voxel_resolution: int = 96, voxel_empty_threshold: float = 0.01, assigned: np.ndarray | None = None) -> list[IoUReport]:
     """Every requested (task, weighting) report for one scene.
 
     scene: GaussianScene with N Gaussians; scores: [N, L]; gt_labels: [N] int (−1 none).
@@ -575,18 +570,14 @@ def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names
     other weightings are asked and in whatever order (round 59b: the first one's τ was taken).
     assigned: [N] bool, Gaussians that hold a language feature; the others (unassigned or pruned
     by registration) are never selected and predict no label (not label 0 by a tie of zeros).
-    absent_scores: [N, E] scores of labels queried but absent from the ground truth, which the
-    segmentation's argmax also runs over (`segmentation_report`).
     """
     scores = np.asarray(scores)
     gt = np.asarray(gt_labels, np.int64)
     if scores.shape[0] != scene.num_gaussians or gt.shape[0] != scene.num_gaussians:
         raise ValueError(f"scores {scores.shape} / labels {gt.shape} do not match the scene's {scene.num_gaussians} Gaussians")
-    if absent_scores is not None and np.shape(absent_scores)[0] != scene.num_gaussians:
-        raise ValueError(f"absent labels' scores {np.shape(absent_scores)} do not match the scene's {scene.num_gaussians} Gaussians")
-    if assigned is not None:
-        scores = scores_of_assigned(scores, assigned)
-        absent_scores = None if absent_scores is None else scores_of_assigned(np.asarray(absent_scores), assigned)
+    if assigned is not None:  # keep float32 scores float32: localisation compares them with τ in float32 (round 19)
+        dtype = scores.dtype if scores.dtype in (np.float32, np.float64) else np.dtype(np.float64)
+        scores = np.where(np.asarray(assigned, bool)[:, None], scores.astype(dtype, copy=False), dtype.type(-np.inf))
     reports: list[IoUReport] = []
     loc_tau: float | None = None  # the volume-aware grid search's, for the voxel row
     for weighting in [w for w in weightings if w != "voxel"]:
@@ -596,7 +587,7 @@ def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names
             loc_tau = rep.threshold if weighting == "volume" else loc_tau
             reports.append(rep)
         if "seg" in tasks:
-            reports.append(segmentation_report(scores, gt, w, label_names, weighting, bad, absent_scores))
+            reports.append(segmentation_report(scores, gt, w, label_names, weighting, bad))
     if "voxel" in weightings:
         setup = VoxelSetup.from_scene(scene, voxel_resolution, voxel_empty_threshold, focus=gt >= 0)
         if "loc" in tasks:
@@ -604,15 +595,8 @@ def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names
                 loc_tau = localisation_report(scores, gt, significance_weights(scene.log_scales, scene.opacity_logits)[0], label_names, taus).threshold
             reports.append(voxel_localisation_report(setup, scores, gt, loc_tau, label_names))
         if "seg" in tasks:
-            reports.append(voxel_segmentation_report(setup, scores, gt, label_names, absent_scores))
+            reports.append(voxel_segmentation_report(setup, scores, gt, label_names))
     return reports
-
-
-def scores_of_assigned(scores: np.ndarray, assigned: np.ndarray) -> np.ndarray:
-    """[N, L] scores with −inf (never selected, no label) in the rows of Gaussians without a feature. Float32 scores stay
-    float32: localisation compares them with τ in float32 (round 19)."""
-    dtype = scores.dtype if scores.dtype in (np.float32, np.float64) else np.dtype(np.float64)
-    return np.where(np.asarray(assigned, bool)[:, None], scores.astype(dtype, copy=False), dtype.type(-np.inf))
 
 
 TAU_DECIMALS = 6  # `drsplat eval`'s thresholds are compared to this many decimals (commands.eval.parse_taus)

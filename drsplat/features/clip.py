@@ -22,7 +22,7 @@ import numpy as np
 
 from drsplat.device import resolve_device
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, one_line
-from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, make_model_id, weights_digest
+from drsplat.features.modelid import CANONICAL_PHRASES, DEFAULT_MODEL, DEFAULT_PRETRAINED, hub_model_kind, make_model_id, weights_digest
 from drsplat.features.weights import _quiet_open_clip, resolve_pretrained_weights
 from drsplat.utils import read_json
 
@@ -58,16 +58,12 @@ def checkpoint_problem(path: Path, exc: BaseException) -> str:
     return "it is a zip archive, but not a readable torch.save checkpoint" if is_zip else "it is a pickle, but not of a checkpoint torch can read"
 
 
-HUB_MODEL_PREFIXES = ("hf-hub:", "local-dir:")  # open_clip's names of a model and its weights together
-
-
 def unsupported_model_name(model: str) -> str | None:
     """Why an open_clip model name cannot be used, as a predicate ("is an open_clip hf-hub: name, ..."; None: it can):
     drsplat records an embedding space as architecture and weights apart (`modelid`), which open_clip's
-    "hf-hub:ORG/REPO" and "local-dir:PATH" names join (round 61c)."""
-    if not model.startswith(HUB_MODEL_PREFIXES):
-        return None
-    return f"is an open_clip {model.split(':')[0]}: name, which drsplat does not load"
+    "hf-hub:ORG/REPO" and "local-dir:PATH" names join (`modelid.hub_model_kind`; round 61c)."""
+    kind = hub_model_kind(model)
+    return None if kind is None else f"is an open_clip {kind}: name, which drsplat does not load"
 
 
 def open_clip_spelling(name: str, known: list[str]) -> str:

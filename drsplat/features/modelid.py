@@ -35,12 +35,22 @@ def canonical_model_id(model_id: str) -> str:
     return model_id.strip().replace(":", "/").lower()
 
 
+HUB_MODEL_PREFIXES = ("hf-hub:", "local-dir:")  # open_clip's names of a model and its weights together (any case)
+
+
+def hub_model_kind(model: str) -> str | None:
+    """'hf-hub' or 'local-dir' for an open_clip name of a model and its weights together ("hf-hub:ORG/REPO",
+    "local-dir:PATH", in any case), else None."""
+    lowered = model.strip().lower()
+    return next((prefix[:-1] for prefix in HUB_MODEL_PREFIXES if lowered.startswith(prefix)), None)
+
+
 def split_model_id(model_id: str) -> tuple[str, str | None]:
     """(architecture, weights tag or None) of a model id: split at its first '/' or ':' (the separators
     `canonical_model_id` reads as one), so "ViT-L-14:openai" and "ViT-B-16/file:ckpt.pt" both split after
-    the architecture; an open_clip "hf-hub:ORG/REPO" architecture keeps its own ':' and '/'."""
+    the architecture; an open_clip "hf-hub:ORG/REPO" or "local-dir:PATH" name is kept whole (`hub_model_kind`)."""
     model_id = model_id.strip()
-    if model_id.startswith("hf-hub:"):
+    if hub_model_kind(model_id) is not None:
         return model_id, None
     cut = min((i for i in (model_id.find("/"), model_id.find(":")) if i >= 0), default=-1)
     if cut < 0:
