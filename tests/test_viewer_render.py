@@ -403,6 +403,21 @@ def test_a_screenshot_is_written_in_the_format_its_name_says(demo, tmp_path, cap
     assert not (tmp_path / "s.gif").exists()
 
 
+def test_a_home_view_screenshot_given_one_side_keeps_the_16_9_aspect(demo, tmp_path):
+    """`--width 320` alone drew the home view 320x720 (the other side's default), a portrait strip; one side given now
+    keeps the home view's 16:9, as a training camera keeps its own aspect."""
+    from PIL import Image
+
+    from viewer.launch import main
+
+    registered, dataset = demo
+    for flags, size in ((["--width", "96"], (96, 54)), (["--height", "90"], (160, 90)), (["--width", "40", "--height", "30"], (40, 30))):
+        out = tmp_path / "home.png"
+        assert main([str(registered), "--source", str(dataset), "--screenshot", str(out), *flags]) == 0
+        with Image.open(out) as image:
+            assert image.size == size, flags
+
+
 def test_a_screenshot_threshold_that_selects_nothing_is_said(demo, tmp_path, capsys):
     """`--mode selection --threshold 1` wrote an all-black PNG, exit 0, while the log gave the count
     at the query's own threshold (a viewer probe, 2026-11-30): the count at --threshold is logged,

@@ -75,7 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float_range(-1.0, 1.0), help="selection threshold (default: 0.5 for a text query, which is scored by relevancy; Otsu's threshold of the "
                    "scores otherwise)")
     p.add_argument("--mode", choices=("highlight", "heatmap", "selection", "hide_selection", "segmentation"), default="highlight", help="display mode of the screenshot")
-    p.add_argument("--width", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot width in pixels (default: the camera's, or 1280)")
+    p.add_argument("--width", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot width in pixels (default: the camera's, or 1280; "
+                   "one side given keeps the camera's aspect, or 16:9 for the home view)")
     p.add_argument("--height", type=int_range(16, MAX_IMAGE_WIDTH), help="screenshot height in pixels (default: the camera's, or 720)")
     p.add_argument("--demo-preset", choices=tuple(PRESETS), default=None, metavar="PRESET",
                    help="without SCENE: generate and register this synthetic preset (drsplat synth) into the cache on first "
@@ -215,7 +216,8 @@ def screenshot(args: argparse.Namespace, state) -> int:
         camera = camera_for_size(state.cameras[args.camera], args.width, args.height)
         check_screenshot_size(camera, args)
     else:
-        view = ViewController.for_scene(state.scene.means, state.cameras, args.width or 1280, args.height or 720, state.scene.log_scales)
+        width, height = home_view_size(args.width, args.height)
+        view = ViewController.for_scene(state.scene.means, state.cameras, width, height, state.scene.log_scales)
         camera = view.camera()
     warn_unused_screenshot_flags(args)
     state.settings.query.negatives = args.negatives
@@ -276,6 +278,22 @@ def screenshot(args: argparse.Namespace, state) -> int:
         log.warning("the screenshot is all background (black): %s", nothing_drawn_reason(mode, centres_in_view(state.scene.means, camera)))
     log.info("wrote %s (%dx%d)", shown_path(args.screenshot), camera.width, camera.height)
     return 0
+
+
+HOME_VIEW_SIZE = (1280, 720)
+
+
+def home_view_size(width: int | None, height: int | None) -> tuple[int, int]:
+    """The home view's screenshot size: HOME_VIEW_SIZE, or its 16:9 aspect kept when one side is given (a training
+    camera keeps its own, `camera_for_size`; `--width 320` alone drew 320x720, a portrait strip)."""
+    default_w, default_h = HOME_VIEW_SIZE
+    if width is None and height is None:
+        return default_w, default_h
+    if width is None:
+        return max(1, round(height * default_w / default_h)), height
+    if height is None:
+        return width, max(1, round(width * default_h / default_w))
+    return width, height
 
 
 def nothing_drawn_reason(mode: str, scene_in_view: bool) -> str:
