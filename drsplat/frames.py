@@ -79,7 +79,7 @@ from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied
                              read_colmap_model, read_dataparser_transform)
 from drsplat.defaults import DEFAULT_NEAR_PLANE, DEFAULT_PRINCIPAL_POINT, INRIA_NEAR, NEAR, PRINCIPAL_POINTS
 from drsplat.errors import InputError
-from drsplat.raster import median_nearest_depth, near_band, prepare_scene, rasterize, share_in_some_view
+from drsplat.raster import median_seen_depth, near_band, prepare_scene, rasterize, share_in_some_view
 from drsplat.scene import counted
 from drsplat.utils import CancelToken, spread_rows
 
@@ -1071,7 +1071,7 @@ def near_plane_as_trained(scene, cameras: Sequence[Camera], what: str = "the sce
                   "(near plane %g)", what, NEAR, INRIA_NEAR, where, evidence.of_views(), NEAR)
         return NEAR
     say = log.warning if bands[widest].cover >= NEAR_BAND_NOTABLE else log.info
-    depth = median_nearest_depth(scene.means, cameras)
+    depth = median_seen_depth(scene.means, cameras)
     if depth < INRIA_NEAR:  # round 83b F2: the advice below would name a plane that culls most of this capture
         say("Gaussians of %s lie %g-%g scene units in front of %s, but the capture lies a median %.2g scene units from its cameras, "
             "nearer than INRIA's near plane (%g), so INRIA's rasterizer did not train it at this scale: they are drawn (near plane "

@@ -212,6 +212,22 @@ def median_nearest_depth(means: np.ndarray, cameras: Sequence[Camera], sample: i
     return float(np.median(nearest)) if nearest.size else float("nan")
 
 
+def median_seen_depth(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:
+    """The median over Gaussians some view sees (z > 0, the projection inside the image) of their smallest depth z over
+    the views that see them, estimated on every ⌈N / sample⌉-th Gaussian: how far a capture's Gaussians lie from the
+    cameras that look at them, in scene units; NaN when no view sees any. Unlike `median_nearest_depth`, a camera that
+    does not look at a Gaussian (a ring of cameras inside a room, looking out: each Gaussian beside the cameras behind
+    it) does not count (round 84b F1: 0.049 against 0.573 seen)."""
+    means = spread_rows(np.asarray(means, np.float64), sample)
+    nearest = np.full(len(means), np.inf)
+    for cam in cameras:
+        uv, z = cam.project(means)
+        seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        nearest = np.where(seen, np.minimum(nearest, z), nearest)
+    nearest = nearest[np.isfinite(nearest)]
+    return float(np.median(nearest)) if nearest.size else float("nan")
+
+
 def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000, near: float = NEAR) -> float:
     """The share of Gaussians whose mean some view sees: z ≥ near and its projection inside the image
     (0 ≤ u < W, 0 ≤ v < H), estimated on every ⌈N / sample⌉-th Gaussian. A trained scene's training

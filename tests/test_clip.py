@@ -213,9 +213,11 @@ def test_an_hf_hub_model_is_refused_as_such_without_asking_for_a_tag(tmp_path, c
     for model_id, kind in (("local-dir:/models/x", "local-dir"), ("HF-HUB:org/name", "hf-hub")):  # round 84a F2
         field = build_field(np.eye(4, 32, dtype=np.float32), np.ones(4, np.float32), "none", clip_model=model_id)
         save_ply(attach_field(tiny_scene(4), field, path), path)
-        assert main(["query", str(path), "--text", "chair"]) == 1
-        err = capsys.readouterr().err
-        assert f"CLIP model id '{model_id}' is an open_clip {kind}: name" in err and "--clip-config" not in err, err
+        for extra in ([], ["--clip-model", "ViT-B-16"]):  # round 84b F2: with --clip-model it asked for --pretrained
+            assert main(["query", str(path), "--text", "chair", *extra]) == 1
+            err = capsys.readouterr().err
+            assert f"CLIP model id '{model_id}' is an open_clip {kind}: name" in err and "--clip-config" not in err, err
+            assert "--pretrained" not in err, err
     check_compatible("hf-hub:org/name", "hf-hub:org/name")
     with pytest.raises(DrsplatError, match="CLIP model mismatch"):
         check_compatible("hf-hub:org/name", "hf-hub")  # an hf-hub id names its weights: not "one names no weights tag"

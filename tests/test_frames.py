@@ -1442,6 +1442,22 @@ def test_a_capture_nearer_than_inrias_plane_is_not_told_to_take_it(tiny_seed0, c
     assert "--near-plane inria" not in caplog.text and "scale both up together" in caplog.text
 
 
+def test_how_far_a_capture_lies_counts_only_the_cameras_that_look_at_each_gaussian():
+    """Round 84b F1: the depth that decides the message above took each Gaussian's nearest camera in front of it, also
+    one that does not look at it (a ring inside a room, looking out: 0.049 where the views see 0.573), so a room seen
+    from inside was told it lay nearer than INRIA's plane. `median_seen_depth` counts the views whose image holds it."""
+    from drsplat.raster import median_nearest_depth, median_seen_depth
+    from drsplat.testing import front_camera
+
+    cam = front_camera(24, 18, z=-4.0)  # looks down -z at the origin: the points below lie 1, 2, 3 in front of it
+    beside = dataclasses.replace(cam, t=np.asarray(cam.t, np.float64) + [40.0, 0.0, -0.5])  # the same axis, 0.5 nearer, far aside
+    means = np.array([[0, 0, -3.0], [0, 0, -2.0], [0, 0, -1.0]])
+    assert median_seen_depth(means, [cam]) == 2.0 == median_nearest_depth(means, [cam])
+    assert median_nearest_depth(means, [cam, beside]) == 1.5, "the camera beside has them 0.5-2.5 in front of it, far outside its image"
+    assert median_seen_depth(means, [cam, beside]) == 2.0
+    assert np.isnan(median_seen_depth(means, [beside]))
+
+
 @pytest.mark.parametrize("plane", [-1, 0, float("nan"), float("inf"), "inria", "AUTO", None, 10**400, True])
 def test_a_near_plane_given_to_the_python_api_is_auto_or_a_positive_finite_depth(tiny_seed0, plane, monkeypatch):
     """Round 67a F8: `cameras_and_plane_as_trained` took -1, 0, NaN and inf as the plane (and rendered the principal-point

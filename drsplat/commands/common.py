@@ -418,8 +418,8 @@ def load_encoder(args: argparse.Namespace, field: LanguageField, instead: str = 
         raise DrsplatError(f"this scene's features are synthetic oracle embeddings, not CLIP: pass {instead} instead of text")
     named = named_model(field.clip_model)  # the field's own model (round 78b F2: an id without "/" asked for ViT-B-16's weights)
     model, pretrained = named or (DEFAULT_MODEL, None)
-    problem = unsupported_model_name(model) if args.clip_model is None else None
-    if problem is not None:  # no --pretrained can help (round 83a F3: it was asked for)
+    problem = unsupported_model_name(model)
+    if problem is not None:  # no --pretrained or --clip-model can help (round 83a F3: it was asked for; round 84b F2)
         raise DrsplatError(f"this scene's CLIP model id {field.clip_model!r} {problem}: pass query embeddings made with that model "
                            "instead of text")
     if named is not None and pretrained is None and not args.pretrained and args.clip_checkpoint is None:
