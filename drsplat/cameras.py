@@ -120,6 +120,13 @@ class Camera:
             v = self.fy * pc[:, 1] / z + self.cy
         return np.stack([u, v], axis=1), z
 
+    def image_hits(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where world points [P, 3] project: ([P] bool, inside the image: 0 ≤ u < width and 0 ≤ v < height, and [P]
+        their depth z). In front means z above the caller's plane (0, the near plane, ...), so the caller tests z."""
+        uv, z = self.project(points)
+        u, v = uv[:, 0], uv[:, 1]
+        return (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height), z
+
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by `factor` (intrinsics and size together)."""
         return self.resized(max(1, int(round(self.width * factor))), max(1, int(round(self.height * factor))))

@@ -221,9 +221,8 @@ def median_seen_depth(means: np.ndarray, cameras: Sequence[Camera], sample: int 
     means = spread_rows(np.asarray(means, np.float64), sample)
     nearest = np.full(len(means), np.inf)
     for cam in cameras:
-        uv, z = cam.project(means)
-        seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        nearest = np.where(seen, np.minimum(nearest, z), nearest)
+        inside, z = cam.image_hits(means)
+        nearest = np.where(inside & (z > 0), np.minimum(nearest, z), nearest)
     nearest = nearest[np.isfinite(nearest)]
     return float(np.median(nearest)) if nearest.size else float("nan")
 
@@ -240,8 +239,8 @@ def share_in_some_view(means: np.ndarray, cameras: Sequence[Camera], sample: int
         return 0.0
     seen = np.zeros(len(means), bool)
     for cam in cameras:
-        uv, z = cam.project(means)
-        seen |= (z >= near) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        inside, z = cam.image_hits(means)
+        seen |= inside & (z >= near)
     return float(np.mean(seen))
 
 

@@ -1261,17 +1261,12 @@ def scene_ball(means: np.ndarray) -> tuple[np.ndarray, float]:
         means = means.astype(np.float64)
     dist = np.empty(means.shape[0], np.float32)
     sums = np.zeros(4)
-
-    def within(centre: np.ndarray, limit: float) -> np.ndarray:
-        ball_distances_kernel(means, centre, MAX_COORDINATE, dist)
-        ball_sums_kernel(means, dist, np.float32(limit), sums)
-        return sums.copy()
-
-    counted = within(np.zeros(3), np.finfo(np.float32).max)
-    count = int(counted[3])
+    ball_distances_kernel(means, np.zeros(3), MAX_COORDINATE, dist)  # +inf marks the rows not counted
+    ball_sums_kernel(means, dist, np.float32(np.finfo(np.float32).max), sums)
+    count = int(sums[3])
     if not count:
         return np.zeros(3), 0.0
-    centre = counted[:3] / count
+    centre = sums[:3] / count
     keep = max(1, math.ceil((1.0 - BALL_TRIM) * count))
     for _ in range(BALL_ROUNDS):
         ball_distances_kernel(means, centre, MAX_COORDINATE, dist)

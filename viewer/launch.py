@@ -320,9 +320,8 @@ def centres_in_view(means: np.ndarray, camera, chunk: int = 1 << 20) -> bool:
     """Whether a Gaussian centre of means [N, 3] lies in front of `camera` and inside its image: a black screenshot is then
     the scene's own colours, not a camera that sees nothing."""
     for lo in range(0, len(means), chunk):  # chunks: Camera.project makes float64 copies
-        uv, z = camera.project(means[lo:lo + chunk])
-        u, v = uv[:, 0], uv[:, 1]
-        if np.any((z > 1e-6) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)):
+        inside, z = camera.image_hits(means[lo:lo + chunk])
+        if np.any(inside & (z > 1e-6)):
             return True
     return False
 

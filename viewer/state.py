@@ -290,7 +290,7 @@ class ViewerState:
         if self.scene is None:
             return "Open a scene: type a scene path (.ply, .splat, .spz) in the Scene panel, or drop the file on the window."
         if self.field is None and self.field_problem is not None:
-            return f"Queries are off: {self.field_problem}. Mend what it names (a codebook moved away: put it back) and open the scene again."
+            return f"Queries are off: {self.no_field_message()}."
         if self.field is None:
             return ("This scene has no language field yet: open the Registration panel and press 'register' "
                     "(it needs the dataset, --source DIR, and its features). Drag to orbit, F1 lists the keys.")

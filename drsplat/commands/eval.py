@@ -485,16 +485,14 @@ def _evaluate_and_print(args, scene, field, gt: np.ndarray, names: list[str], in
     assigned = assigned_rows(args.registered, field)
     tasks = ("loc", "seg") if args.task == "both" else (args.task,)
     every = "seg" in tasks and args.argmax_over == "queried" and len(present) < len(names)
-    absent = [i for i in range(len(names)) if i not in set(present)] if every else []
-    if args.text_embeddings is None and not every:
-        scores = label_scores(args, field, sub_names)
-    else:
-        scores = label_scores(args, field, names)  # every queried label, in the names' order: an exact tie goes to the lower label
+    absent = sorted(set(range(len(names))) - set(present)) if every else []
+    over_names = every or args.text_embeddings is not None  # every queried label, in the names' order: a tie goes to the lower label
+    scores = label_scores(args, field, names if over_names else sub_names)
     if index is not None:
         scores = expand_scores(scores, index, scene.num_gaussians)
         registered, assigned = assigned, np.zeros(scene.num_gaussians, bool)
         assigned[index] = registered
-    present_scores = scores if scores.shape[1] == len(sub_names) else scores[:, keep]
+    present_scores = scores[:, keep] if over_names else scores
     weightings, taus = parse_weightings(args.weighting), parse_taus(args.taus)
     rest = tuple(t for t in tasks if not (every and t == "seg"))
     reports = evaluate_scene(scene, present_scores, gt_sub, sub_names, rest, weightings, taus, args.voxel_resolution, args.voxel_empty,
