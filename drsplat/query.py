@@ -62,6 +62,82 @@ def query_rows(x: np.ndarray, what: str = "query") -> np.ndarray:
     return unit_rows(x)
 
 
+def field_rows(field: LanguageField, x: np.ndarray, what: str = "query") -> np.ndarray:
+    """`query_rows` of x, DrsplatError when their width is not the field's D (round 85c F2: a 768-D negative met the
+    512-D queries in numpy's concatenate, whose message named neither)."""
+    rows = query_rows(x, what)
+    if rows.shape[1] != field.dim:
+        raise DrsplatError(f"the {what} rows are {rows.shape[1]}-D, but this field holds {field.dim}-D features")
+    return rows
+
+
+SAME_DIRECTION = 1e-9  # 1 - cos below which two unit rows are one direction: float32 rounding of a scaled copy is ~1e-14
+
+
+def first_of_direction(units: np.ndarray) -> np.ndarray:
+    """[Q] int64: for each of the unit rows units [Q, D], the lowest index of a row with its direction,
+    1 - cos ≤ SAME_DIRECTION (itself where none is earlier; groups joined through any chain of such pairs). A row and
+    its multiple c·x normalise to unit rows that differ in their last bits, so their scores differ by float32 noise in
+    either direction (round 85c F1: eight labels and the same eight times 3, the copies won 1,590 of 2,757 Gaussians).
+    Bit-identical rows are one row first; the others are compared only with rows whose projection on a fixed direction
+    r lies within √(2·SAME_DIRECTION)·|r| of theirs (|a - b|² = 2(1 - cos) for unit a, b), after sorting by it:
+    O(Q log Q) and a few dot products where the Q² of them would take minutes for 20,000 labels.
+    `first_of_direction_reference` compares every pair."""
+    q = units.shape[0]
+    if q < 2:
+        return np.arange(q, dtype=np.int64)
+    _, rep, inverse = np.unique(units, axis=0, return_index=True, return_inverse=True)
+    u = _unit64(units[rep])
+    parent = np.arange(rep.size)
+
+    def root(a: int) -> int:
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    r = np.linspace(1.0, 2.0, u.shape[1])  # any fixed direction
+    key = u @ r
+    reach = math.sqrt(2.0 * SAME_DIRECTION) * float(np.linalg.norm(r))
+    order = np.argsort(key, kind="stable")
+    for a in range(order.size):
+        b = a + 1
+        while b < order.size and key[order[b]] - key[order[a]] <= reach:
+            i, j = int(order[a]), int(order[b])
+            if 1.0 - float(u[i] @ u[j]) <= SAME_DIRECTION and (ri := root(i)) != (rj := root(j)):
+                parent[max(ri, rj)] = min(ri, rj)
+            b += 1
+    roots = np.array([root(i) for i in range(rep.size)])
+    lowest = np.full(rep.size, q, np.int64)
+    np.minimum.at(lowest, roots, rep)
+    return lowest[roots][inverse.reshape(-1)]
+
+
+def first_of_direction_reference(units: np.ndarray) -> np.ndarray:
+    """`first_of_direction` by every pair: the groups are the connected parts of the graph 1 - cos ≤ SAME_DIRECTION."""
+    q = units.shape[0]
+    u = _unit64(units)
+    near = 1.0 - u @ u.T <= SAME_DIRECTION
+    first = np.arange(q, dtype=np.int64)
+    for i in range(q):  # a breadth-first search from each row not yet in an earlier group
+        if first[i] != i:
+            continue
+        group, frontier = {i}, [i]
+        while frontier:
+            frontier = [int(j) for f in frontier for j in np.flatnonzero(near[f]) if j not in group]
+            group.update(frontier)
+        first[sorted(group)] = i
+    return first
+
+
+def _unit64(rows: np.ndarray) -> np.ndarray:
+    """rows [K, D] divided by their float64 norms (a zero row stays zero): `unit_rows` leaves a row within 2⁻²² of unit
+    as it is, and against such a row the cosine of its own copy times 3 was 1 - 4e-8."""
+    u = np.asarray(rows, np.float64)
+    norms = np.linalg.norm(u, axis=1, keepdims=True)
+    return u / np.where(norms > 0.0, norms, 1.0)
+
+
 def text_embeddings(encoder: TextEncoder, phrases: list[str], field: LanguageField | None = None) -> np.ndarray:
     """Unit text embeddings [K, D] of phrases, after checking the encoder matches the field's model."""
     if field is not None:
@@ -88,6 +164,13 @@ def click_query(field: LanguageField, ids: np.ndarray) -> np.ndarray:
         if given.shape[0] != len(field):
             raise DrsplatError(f"a boolean mask of Gaussians needs one entry per Gaussian ({len(field):,}), got {given.shape[0]:,}")
         given = np.flatnonzero(given)
+    elif not np.issubdtype(given.dtype, np.integer):  # round 85c F4: float ids raised numpy's IndexError
+        raise DrsplatError(f"Gaussian ids must be integers (or a boolean mask), got dtype {given.dtype}")
+    if given.size == 0:  # it was told "all unassigned", though nothing was selected
+        raise DrsplatError("no Gaussian ids given: a click query needs at least one Gaussian")
+    outside = (given < 0) | (given >= len(field))  # -1 read the last Gaussian, so [-1, N-1] counted it twice (round 85c F4)
+    if outside.any():
+        raise DrsplatError(f"{int(outside.sum()):,} Gaussian ids fall outside 0..{len(field) - 1} (e.g. {int(given[outside][0])})")
     ids = np.unique(given)
     if ids.size < given.size:
         log.info("%d repeated Gaussian ids counted once", given.size - ids.size)
@@ -266,7 +349,7 @@ def relevancy(field: LanguageField, queries: np.ndarray, negatives: np.ndarray, 
     """
     if len(negatives) == 0:
         raise DrsplatError("relevancy needs at least one negative embedding")
-    q, neg = query_rows(queries), query_rows(negatives, "negative")
+    q, neg = field_rows(field, queries), field_rows(field, negatives, "negative")
     scores = field.scores(np.concatenate([q, neg]), lut_bits=lut_bits, device=device)
     out = relevancy_from_scores(scores[:, : q.shape[0]], scores[:, q.shape[0] :], temperature)
     out[~field.assigned()] = 0.0
@@ -380,7 +463,8 @@ class Segmentation:
 
 def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.ndarray | None = None, min_score: float | None = None, lut_bits: int = 32,
             device: str | None = None) -> Segmentation:
-    """Label every Gaussian with argmax_l cos(e_l, f_i) over labels [L, D].
+    """Label every Gaussian with argmax_l cos(e_l, f_i) over labels [L, D]; of labels of one direction
+    (`first_of_direction`: a row and its multiple) the first takes every Gaussian, as of equal rows.
 
     background: [D] or [B, D] embeddings of background phrases; Gaussians they win get -1.
     min_score: Gaussians whose best cosine is below it get -1 (a finite number: ValueError for NaN,
@@ -388,9 +472,10 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
     """
     if min_score is not None and not math.isfinite(min_score):
         raise ValueError(f"min_score must be a finite cosine, got {min_score!r}")
-    labels_emb = query_rows(label_embeddings, "label embedding")
+    labels_emb = field_rows(field, label_embeddings, "label embedding")
     n_labels = labels_emb.shape[0]
-    queries = labels_emb if background is None else np.concatenate([labels_emb, query_rows(background, "background embedding")])
+    queries = labels_emb if background is None else np.concatenate([labels_emb, field_rows(field, background, "background embedding")])
+    queries = queries[first_of_direction(queries)]  # rows of one direction are one label: the first wins their ties, as documented
     best, best_score = _argmax_scores(field, queries, lut_bits, device)
     labels = np.where(best < n_labels, best, -1).astype(np.int32)
     labels[~field.assigned()] = -1  # unassigned (0) and non-finite features (they score 0; read_field warns)

@@ -570,7 +570,7 @@ def _read_legacy_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes]
     if int(header["magic"]) != NGSP_MAGIC:
         raise InputError(path, "is a gzip file without the spz header (magic 'NGSP'): not an .spz file", field="magic")
     version, points, degree = int(header["version"]), int(header["points"]), int(header["sh_degree"])
-    if version >= 4 and gzip_damage(data) is None:  # version 4 is no gzip stream: read as one, it was called "truncated"
+    if version == 4 and gzip_damage(data) is None:  # version 4 is no gzip stream: read as one, it was called "truncated"; 5 and up are unknown (round 85b F2)
         raise InputError(path, f"is a gzip-compressed spz version {version} file (version 4 is a plain 'NGSP' file of zstd "
                                "streams, not a gzip stream): decompress it first (gunzip -k, after naming it .spz.gz)", field="gzip")
     try:
@@ -897,7 +897,8 @@ def splat_records(scene: GaussianScene) -> tuple[np.ndarray, dict[str, int]]:
     outside = (scale > limits.max) | (scale < limits.smallest_normal)  # a scale that rounds to 0 reads back as log 0 = -inf
     out["scale"] = np.clip(scale, limits.smallest_normal, limits.max)
     rgb, clipped_rgb = _bytes_of(255.0 * (0.5 + SH_C0 * scene.sh[:, 0].astype(np.float64)))
-    alpha, _ = _bytes_of(255.0 * scene.opacities().astype(np.float64))
+    with np.errstate(over="ignore"):  # σ in float64 from the logit: float32's σ of a read 255 (254.5/255) gave 254.49999 -> 254 (round 85b F1)
+        alpha, _ = _bytes_of(255.0 / (1.0 + np.exp(-scene.opacity_logits.astype(np.float64))))
     out["rgba"][:, :3], out["rgba"][:, 3] = rgb, alpha
     out["rotation"], _ = _bytes_of(128.0 + 128.0 * scene.unit_quats64())
     return out, {"colour": clipped_rgb, "scale": int(outside.sum())}

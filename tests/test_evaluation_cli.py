@@ -434,6 +434,9 @@ def test_eval_segmentation_argmax_runs_over_every_queried_label_as_opengaussian(
     assert seg["queried"] < seg["present"]
     loc = {rule: next(x for x in doc["reports"] if x["task"] == "loc") for rule, doc in docs.items()}
     assert loc["queried"] == loc["present"], "localisation never averages an absent label"
+    # round 85a F3: with --task loc the flag changed nothing and was taken without a word
+    assert main([*base, "--task", "loc", "--argmax-over", "present"]) == 2
+    assert "--argmax-over applies to the segmentation's argmax: use --task seg or both" in capsys.readouterr().err
 
     # round 84a F1: an exact tie goes to the lower label, as OpenGaussian's argmax gives it: a 'rug' listed first with the
     # floor's very embedding takes every floor Gaussian (the absent labels had been put after the present ones)

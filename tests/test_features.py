@@ -240,6 +240,42 @@ def test_an_image_edited_after_its_features_were_made_is_redone(tmp_path, weight
     assert main(args) == 0 and mtimes(out) == after
 
 
+def test_a_pair_made_through_another_lens_is_redone(tmp_path, weights, capsys):
+    """Round 85d F1: the camera file's lens distortion corrected (or its undistorted pinhole moved) left every pair of
+    the old lens in place, "skipped 50 already complete": the masks are made on the undistorted image, so a pair now
+    records its camera's part of that too (`camera_pixels_key`). A pose moved changes no pixel and redoes nothing, nor
+    does a folder's stamp from before (the image's part only)."""
+    import json
+    import shutil
+
+    from PIL import Image
+
+    src = tmp_path / "ds"
+    shutil.copytree(_one_camera_dataset(tmp_path / "one", Image.fromarray(np.tile(np.linspace(0, 255, 64).astype(np.uint8)[None, :, None], (48, 1, 3)))), src)
+    out = tmp_path / "features"
+    args = slic_features_argv(src, out, weights)
+    assert main(args) == 0
+    doc = json.loads((src / "transforms.json").read_text())
+    steps = [("lens", lambda d: d.update(k1=0.08, k2=0.0, p1=0.0, p2=0.0), True), ("nothing", lambda d: None, False),
+             ("pose", lambda d: d["frames"][0]["transform_matrix"][0].__setitem__(3, 0.5), False),
+             ("centre", lambda d: d["frames"][0].update(cx=30.0) if "cx" in d["frames"][0] else d.update(cx=30.0), True)]
+    for what, edit, redone in steps:
+        edit(doc)
+        (src / "transforms.json").write_text(json.dumps(doc))
+        before = mtimes(out)
+        capsys.readouterr()
+        assert main(args) == 0
+        err = capsys.readouterr().err
+        assert (mtimes(out) != before) == redone, what
+        assert ("the camera (its size, or the lens distortion and the pinhole it is undistorted to) of view changed" in err) == redone, (what, err)
+    manifest = featurefiles.read_manifest(out)
+    featurefiles.write_manifest(out, {**manifest, "image_stamps": {k: v.partition("|")[0] for k, v in manifest["image_stamps"].items()}})
+    before = mtimes(out)
+    doc.update(k1=0.02)
+    (src / "transforms.json").write_text(json.dumps(doc))
+    assert main(args) == 0 and mtimes(out) == before, "a stamp of the image alone (an older folder) does not judge the camera"
+
+
 def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights):
     """Was (a probe, 2026-12-01): the stamps were written when a run finished, so the pairs of a run
     stopped by an unreadable image (or Ctrl-C, or a kill) had none; the next run kept them as complete

@@ -11,7 +11,7 @@ import warnings
 import numpy as np
 import pytest
 
-from drsplat.cameras import load_cameras, look_at_camera
+from drsplat.cameras import Camera, load_cameras, look_at_camera
 from drsplat.raster import prepare_scene, rasterize_topk
 from drsplat.registration import RegisterOptions, register, register_features
 from drsplat.registration.aggregate import BLUR, SHARP_BLUR, SHARP_FLOOR, SurfaceSupport, ViewStats, sharpening, view_weights, view_weights_reference
@@ -29,6 +29,7 @@ from drsplat.registration.fit import (
     probe_floaters,
     probe_picks,
     ProbeOrder,
+    ProbeSpace,
     probe_space,
     rerender_reference,
     rerender_scores,
@@ -38,7 +39,7 @@ from drsplat.registration.fit import (
     view_labels,
     view_labels_reference,
 )
-from drsplat.scene import GaussianScene, load_ply
+from drsplat.scene import GaussianScene, load_ply, scene_ball
 from drsplat.synthetic import write_dataset
 
 
@@ -376,6 +377,37 @@ def test_a_view_that_does_not_score_is_passed_over_and_moves_no_other_pick():
         without = [j for j in range(24) if j != blind]
         want = [without[i] for i in probe_picks([views[j] for j in without], 8)]
         assert blind in probed and scored == want
+
+
+def _rig_faces(eye: np.ndarray, name: str) -> list:
+    """The six cube faces of a 360 rig at `eye` (a panorama cut into pinhole views), each looking along one axis."""
+    turns = [np.eye(3)]
+    for axis, angle in (((0, 1, 0), np.pi / 2), ((0, 1, 0), np.pi), ((0, 1, 0), -np.pi / 2), ((1, 0, 0), np.pi / 2), ((1, 0, 0), -np.pi / 2)):
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], np.float64)
+        turns.append(np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k)
+    return [Camera(fx=8.0, fy=8.0, cx=8.0, cy=8.0, R=r, t=-r @ eye, width=16, height=16, name=f"{name}_face{j}") for j, r in enumerate(turns)]
+
+
+def test_a_rigs_probe_views_do_not_depend_on_the_worlds_frame():
+    """Round 85a F1: the views of a 360 rig share one camera centre, so they tie on their distance from the scene's
+    centre, and the tie went to the lower pose, compared coordinate by coordinate: 4 of 5 turns of the world probed
+    other views of a rig path, every view of a tripod panorama. They now tie on the angle to the centre first."""
+    rng = np.random.default_rng(0)
+    means = rng.normal(size=(20000, 3)) * [4.0, 1.5, 4.0]
+    path = [np.array([3 * np.cos(a), 0.2 * np.sin(2 * a), 2 * np.sin(a)]) for a in np.linspace(0, 1.5 * np.pi, 10)]
+    rig = [cam for i, eye in enumerate(path) for cam in _rig_faces(eye, f"pos{i:02d}")]
+    eye = np.array([0.3, 0.1, -0.2])
+    pano = [look_at_camera(eye, eye + [np.cos(a), 0.1 * np.sin(3 * a), np.sin(a)], 16, 12, 50.0) for a in 2 * np.pi * np.arange(40) / 40]
+    pano = [dataclasses.replace(cam, name=f"pano_{j:02d}") for j, cam in enumerate(pano)]
+    for cams in (rig, pano):
+        centre, radius = scene_ball(means)
+        names = [cams[i].name for i in probe_picks(cams, 8, ProbeSpace(centre, 2 * radius))]
+        for seed in range(5):
+            q = np.linalg.qr(np.random.default_rng(100 + seed).normal(size=(3, 3)))[0]
+            q = q * np.sign(np.linalg.det(q))  # a turn, not a mirror
+            turned = [dataclasses.replace(c, R=np.asarray(c.R) @ q.T) for c in cams]  # x' = q x: R' = R qᵀ, t unchanged
+            centre, radius = scene_ball(means @ q.T)
+            assert [turned[i].name for i in probe_picks(turned, 8, ProbeSpace(centre, 2 * radius))] == names, seed
 
 
 def _world_moved(scene: GaussianScene, cams: list, angle: float, axis, shift, scale: float = 1.0):

@@ -212,3 +212,11 @@ def test_a_gzipped_version_4_spz_is_named_not_called_truncated(tmp_path):
     with pytest.raises(InputError) as err:
         load_scene_report(tmp_path / "g.spz")
     assert "is a gzip-compressed spz version 4 file" in str(err.value) and "truncated" not in str(err.value), err.value
+    # round 85b F2: a gzip stream whose header says 5 or more was told to decompress it too, which does not help
+    save_scene(scene, tmp_path / "v3.spz", spz_version=3)
+    raw = gzip.decompress((tmp_path / "v3.spz").read_bytes())
+    for version in (5, 255):
+        (tmp_path / "v.spz").write_bytes(gzip.compress(raw[:4] + version.to_bytes(4, "little") + raw[8:], mtime=0))
+        with pytest.raises(InputError) as err:
+            load_scene_report(tmp_path / "v.spz")
+        assert f"is spz version {version}; drsplat reads versions 1-4" in str(err.value) and "decompress" not in str(err.value), err.value

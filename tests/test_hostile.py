@@ -710,6 +710,20 @@ def test_query_embedding_beyond_float32_is_named_without_numpy_warnings(tmp_path
     assert code == 1 and "beyond float32's range" in err, err
 
 
+def test_pq_train_over_a_registrations_codebook_warns_before_training(tmp_path, world, capsys):
+    """Round 85c F3: `pq train --out scene.codebook.faiss` replaced the codebook scene.ply beside it was registered with,
+    exit 0 and not a word; the warning comes before the training, while it can still be stopped."""
+    out, rows = tmp_path / "scene.codebook.faiss", tmp_path / "rows.npy"
+    np.save(rows, np.random.default_rng(0).normal(size=(300, world["dim"])).astype(np.float32))
+    assert run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", out], capsys)[0] == 0
+    code, err = run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", out], capsys)
+    assert code == 0 and "replaces" not in err, "no PLY of that stem beside it: an ordinary output"
+    (tmp_path / "scene.ply").write_bytes(b"ply\n")
+    code, err = run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", out], capsys)
+    assert code == 0 and "--out " in err and "replaces the codebook that registration writes for" in err and "scene.ply beside it" in err, err
+    assert err.index("replaces the codebook") < err.index("training PQ"), err
+
+
 def test_pq_train_m_that_does_not_divide_is_a_usage_error(tmp_path, world, capsys):
     code, err = run_cli(["pq", "train", "--embeddings", world["L"], "--m", "7", "--out", tmp_path / "cb.faiss"], capsys)
     assert code == 2 and "--m 7 does not divide the embedding dimension" in err and "input:" not in err, err
@@ -920,6 +934,12 @@ def test_segment_warns_of_labels_that_can_never_win(tmp_path, world, capsys):
                          "background gets none" in err, err
     labels = np.load(tmp_path / "b.npy")
     assert (labels == 0).sum() > 0 and not ((labels == -1) & (np.load(tmp_path / "l.npy") == 0)).any()
+    # round 85c F1: a row times 3 is the same direction, but only bit-equal rows were said, and its noise won Gaussians
+    np.save(tmp_path / "scaled.npy", np.concatenate([emb[[3, 2]], 3.0 * emb[[3]], 0.1 * emb[[2]]]).astype(np.float32))
+    code, err = run_cli(["segment", world["reg"], "--embeddings", tmp_path / "scaled.npy", "--out", tmp_path / "c.npy"], capsys)
+    assert code == 0 and "label 'label_2' has the same embedding as 'label_0'" in err and "label 'label_3' has the same embedding as 'label_1'" in err
+    first = np.load(tmp_path / "l.npy")  # rows 3, 3, 2: labels 0 and 2, here 0 and 1
+    np.testing.assert_array_equal(np.load(tmp_path / "c.npy"), np.where(first == 2, 1, first))
     code, err = run_cli(["segment", world["reg"], "--embeddings", world["L"], "--out", tmp_path / "m.npy", "--min-score", "1"], capsys)
     assert code == 0 and "no Gaussian's best score reaches --min-score 1" in err and "every label is -1" in err, err
     assert (np.load(tmp_path / "m.npy") == -1).all()
@@ -1766,6 +1786,10 @@ def test_outputs_that_are_devices_fifos_or_symlinks(tmp_path, world, capsys):
         assert stat.S_ISCHR(os.stat("/dev/full").st_mode)
     assert run_cli([*base, "--scores", os.devnull], capsys)[0] == 0
     assert stat.S_ISCHR(os.stat(os.devnull).st_mode), "/dev/null must stay a device"
+    # round 85c F5: two outputs thrown away were refused as "name the same file"; --threshold -0 printed "-0.0000"
+    assert main([str(a) for a in [*base, "--scores", os.devnull, "--out", os.devnull, "--threshold", "-0"]]) == 0
+    out = capsys.readouterr().out
+    assert "Gaussians score >= 0.0000" in out and "-0.0" not in out, out
     # a symlink: the link stays, its target gets the data
     target = tmp_path / "sub" / "target.npy"
     target.parent.mkdir()

@@ -884,6 +884,10 @@ def test_a_codebook_replaced_after_registration_is_refused_and_one_replaced_duri
     codebook_path_for(ply).write_bytes(source.read_bytes())  # replaced after it
     with pytest.raises(InputError, match=r"a\.codebook\.faiss: is not the codebook a\.ply was registered with \(its CRC-32 is [0-9a-f]{8}"):
         read_field(load_ply(ply), ply)
+    # round 85c F3: replaced by a codebook of another width, it was told only "codebook is pq d=32, but a.ply declares pq dim=..."
+    train_codebook(np.random.default_rng(2).normal(size=(512, 32)).astype(np.float32), m=8, seed=0).save(codebook_path_for(ply))
+    with pytest.raises(InputError, match=r"is not the codebook a\.ply was registered with .*it was replaced after that registration"):
+        read_field(load_ply(ply), ply)
 
 
 def test_backends_store_the_same_rows_with_the_callers_unit_check(books, data):

@@ -15,6 +15,8 @@ from drsplat.query import (
     check_clip_models,
     click_query,
     cosine,
+    first_of_direction,
+    first_of_direction_reference,
     load_gaussian_ids,
     load_query_embeddings,
     otsu_threshold,
@@ -121,6 +123,53 @@ def test_segmentation_argmax_background_and_unassigned(world, fields):
     assert np.all(high.labels == -1)
 
 
+def test_rows_of_one_direction_are_found_as_every_pair_finds_them():
+    """`first_of_direction` (sorted projections) against its reference (every pair): random rows, rows and their
+    multiples, bit-equal copies, chains, pairs either side of SAME_DIRECTION, zero-free hard cases."""
+    import drsplat.query as dq
+
+    rng = np.random.default_rng(7)
+    base = rng.normal(size=(40, 64)).astype(np.float32)
+    rows = np.concatenate([base, 3.0 * base[:10], 1e-3 * base[5:15], base[:4], -base[20:24], 1e6 * base[30:32]]).astype(np.float32)
+    side = base[0] / np.linalg.norm(base[0])
+    bend = rng.normal(size=64)
+    bend -= (bend @ side) * side
+    bend /= np.linalg.norm(bend)
+    for angle in (0.5 * np.sqrt(2e-9), 2.0 * np.sqrt(2e-9), 1e-3):  # 1 - cos = angle²/2: inside, outside, far outside
+        rows = np.concatenate([rows, (np.cos(angle) * side + np.sin(angle) * bend)[None].astype(np.float32)])
+    rows = rows[rng.permutation(len(rows))]
+    units = dq.query_rows(rows)
+    got = first_of_direction(units)
+    np.testing.assert_array_equal(got, first_of_direction_reference(units))
+    assert len(np.unique(got)) < len(rows) - 20 and (got <= np.arange(len(rows))).all()
+    for q in (0, 1):
+        np.testing.assert_array_equal(first_of_direction(units[:q]), np.arange(q))
+
+
+@pytest.mark.parametrize("kind", ["exact", "pq"])
+def test_a_label_and_its_multiple_are_one_label(world, fields, kind):
+    """Round 85c F1: labels and the same labels times 3 (or a background row twice a label's) split the Gaussians
+    between the two by float32 rounding, the copies winning most: the first of rows of one direction wins, as of equal
+    rows."""
+    _, _, _, dirs = world
+    field = fields[kind]
+    base = segment(field, dirs)
+    for c in (3.0, 0.1, 7.3):
+        np.testing.assert_array_equal(segment(field, np.concatenate([dirs, c * dirs]).astype(np.float32)).labels, base.labels)
+    np.testing.assert_array_equal(segment(field, dirs, background=2.0 * dirs[0]).labels, base.labels)
+
+
+def test_rows_of_another_width_than_the_fields_are_named(fields):
+    """Round 85c F2: a 768-D negative, background or query against a 512-D field met the others in numpy's concatenate,
+    whose error named neither."""
+    field = fields["exact"]
+    good, wide = np.ones((1, field.dim), np.float32), np.ones((2, field.dim + 3), np.float32)
+    for call, what in ((lambda: relevancy(field, good, wide), "negative"), (lambda: relevancy(field, wide, good), "query"),
+                       (lambda: segment(field, good, background=wide), "background embedding"), (lambda: segment(field, wide), "label embedding")):
+        with pytest.raises(DrsplatError, match=f"the {what} rows are {field.dim + 3}-D, but this field holds {field.dim}-D features"):
+            call()
+
+
 @pytest.mark.parametrize("kind", ["exact", "pq"])
 def test_segment_scores_a_few_labels_at_a_time_to_the_same_labels(world, fields, monkeypatch, kind):
     """Round 61b: segment held the whole [N, L] scores (200 labels on 5M Gaussians: 6.4 GB, 10M killed at 10 GB).
@@ -191,6 +240,12 @@ def test_click_query_reads_its_ids_as_a_set(world, fields):
             np.testing.assert_array_equal(click_query(fields[name], given), want, err_msg=name)
     with pytest.raises(DrsplatError, match="one entry per Gaussian"):
         click_query(fields["exact"], mask[:-1])
+    # round 85c F4: -1 read the last Gaussian (so [-1, N-1] counted it twice), N and float ids raised numpy's IndexError
+    n = len(fields["exact"])
+    for bad, message in (([-1, n - 1], "1 Gaussian ids fall outside 0..1199 (e.g. -1)"), ([n], "fall outside"),
+                         (np.array([1.0, 2.0]), "must be integers"), (np.array([], np.int64), "no Gaussian ids given")):
+        with pytest.raises(DrsplatError, match=re.escape(message)):
+            click_query(fields["exact"], bad)
 
 def test_a_click_query_of_many_gaussians_is_the_same_bits_in_bounded_memory(fields, monkeypatch):
     """Round 61b: a click query reconstructed every selected Gaussian at once, with float64 copies: ~15 kB an id

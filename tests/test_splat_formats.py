@@ -670,6 +670,23 @@ def test_a_compressed_ply_of_opaque_and_clear_splats_reads_back_without_infiniti
     assert back.opacity_logits.max() == pytest.approx(np.log(254.5 / 0.5), abs=1e-5) and back.opacity_logits.min() == pytest.approx(-np.log(254.5 / 0.5), abs=1e-5)
 
 
+@pytest.mark.parametrize("suffix", [".splat", ".spz", ".compressed.ply"])
+def test_every_alpha_byte_read_is_written_back_as_itself(tmp_path, suffix):
+    """Round 85b F1: a .splat alpha of 255, read as 254.5/255, was written back as 254 (255·σ in float32 is 254.49999),
+    so every fully opaque splat lost a step each time a .splat went through drsplat. Each of the 256 bytes, read from
+    one file of the format and written to another, is the same byte."""
+    scene = random_scene(256)
+    scene.opacity_logits[:] = np.log(np.clip(np.arange(256), 0.5, 254.5) / (255.0 - np.clip(np.arange(256), 0.5, 254.5)))
+    save_scene(scene, tmp_path / f"a{suffix}")
+    first = load_scene(tmp_path / f"a{suffix}")
+    save_scene(first, tmp_path / f"b{suffix}")
+    second = load_scene(tmp_path / f"b{suffix}")
+    order = np.lexsort(first.means.T)  # the compressed format stores its rows in Morton order
+    again = np.lexsort(second.means.T)
+    assert np.array_equal(first.opacity_logits[order], second.opacity_logits[again])
+    assert np.unique(first.opacity_logits).size == 256
+
+
 def test_log_scales_the_compressed_format_clamps_are_counted(tmp_path, caplog):
     """Round 41: a log scale of 25 read back as 20 without a word; .spz counted its clipping already."""
     scene = random_scene(8)

@@ -589,6 +589,11 @@ def test_screenshot_command_errors_name_the_problem(demo, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--height 16384 keeps camera 0's aspect, a 21845x16384 image, but a side must be 1 to 16384 pixels" in err, err
     assert err.count("ERROR") == 1 and "Traceback" not in err
+    # round 85a F2: the home view's 16:9 side was not checked either ("cannot render a 16533x9300 image", exit 1)
+    assert main([str(registered), "--screenshot", str(out), "--height", "9300"]) == 2
+    err = capsys.readouterr().err
+    assert "the home view: --height 9300 keeps the home view's 16:9 aspect, a 16533x9300 image, but a side must be 1 to 16384" in err, err
+    assert err.count("ERROR") == 1 and "give --width and --height both" in err
     assert not out.exists()
 
 

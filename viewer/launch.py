@@ -167,15 +167,20 @@ def build_state(args: argparse.Namespace, background_checks: bool = False):
     return state
 
 
-def check_screenshot_size(camera, args: argparse.Namespace) -> None:
-    """UsageError when the size a training camera gives the screenshot (its own, or the side that keeps its aspect beside
-    --width or --height) is not 1 to MAX_IMAGE_WIDTH pixels a side: --height 16384 on a 4:3 camera asked for a
-    21845-pixel width, and --width 16 on a 4000x10 one for a height of 0 (round 53: moderngl tracebacks)."""
-    if 1 <= camera.width <= MAX_IMAGE_WIDTH and 1 <= camera.height <= MAX_IMAGE_WIDTH:
+def check_screenshot_size(width: int, height: int, args: argparse.Namespace) -> None:
+    """UsageError when the size the screenshot takes (a training camera's own, or the side that keeps its aspect, or the
+    home view's 16:9, beside --width or --height) is not 1 to MAX_IMAGE_WIDTH pixels a side: --height 16384 on a 4:3
+    camera asked for a 21845-pixel width, and --width 16 on a 4000x10 one for a height of 0 (round 53: moderngl
+    tracebacks); the home view's --height 9300 for a width of 16533 (round 85a F2: named as a size never asked for)."""
+    if 1 <= width <= MAX_IMAGE_WIDTH and 1 <= height <= MAX_IMAGE_WIDTH:
         return
     given = " ".join(f"--{name} {value}" for name, value in (("width", args.width), ("height", args.height)) if value is not None)
-    how = f"{given} keeps camera {args.camera}'s aspect" if given else f"camera {args.camera}'s own size"
-    raise UsageError(f"--camera {args.camera}: {how}, a {camera.width}x{camera.height} image, but a side must be 1 to {MAX_IMAGE_WIDTH} "
+    if args.camera is None:
+        where, how = "the home view", f"{given} keeps the home view's 16:9 aspect"
+    else:
+        where = f"--camera {args.camera}"
+        how = f"{given} keeps camera {args.camera}'s aspect" if given else f"camera {args.camera}'s own size"
+    raise UsageError(f"{where}: {how}, a {width}x{height} image, but a side must be 1 to {MAX_IMAGE_WIDTH} "
                      "pixels; give --width and --height both, or a smaller one")
 
 
@@ -214,9 +219,10 @@ def screenshot(args: argparse.Namespace, state) -> int:
         if not 0 <= args.camera < len(state.cameras):
             raise DrsplatError(f"--camera {args.camera} is out of range: the dataset has {counted(len(state.cameras), 'camera', 'cameras')} (0..{len(state.cameras) - 1})")
         camera = camera_for_size(state.cameras[args.camera], args.width, args.height)
-        check_screenshot_size(camera, args)
+        check_screenshot_size(camera.width, camera.height, args)
     else:
         width, height = home_view_size(args.width, args.height)
+        check_screenshot_size(width, height, args)
         view = ViewController.for_scene(state.scene.means, state.cameras, width, height, state.scene.log_scales)
         camera = view.camera()
     warn_unused_screenshot_flags(args)

@@ -72,7 +72,7 @@ def _add_query_arguments(parser: argparse.ArgumentParser, names_help: str) -> No
 def _add_task_arguments(parser: argparse.ArgumentParser) -> None:
     t = parser.add_argument_group("metrics")
     t.add_argument("--task", choices=("loc", "seg", "both"), default="both", help="localisation (global threshold), segmentation (argmax), or both")
-    t.add_argument("--argmax-over", choices=("queried", "present"), default="queried",
+    t.add_argument("--argmax-over", choices=("queried", "present"), default=None,
                    help="segmentation's argmax over every queried label (default; OpenGaussian's protocol: a label absent from "
                         "the ground truth can win a Gaussian, a miss) or only over the labels the ground truth holds (easier; "
                         "drsplat's rule until 2026-12-07); the means are over the present labels either way")
@@ -295,6 +295,9 @@ def check_metric_flags(args: argparse.Namespace) -> None:
     if given and "voxel" not in args.weighting:  # they were ignored without a word (round 54)
         raise UsageError(f"{', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to the voxel IoU only: add voxel to "
                          f"--weighting (now {','.join(args.weighting)}) or drop {'it' if len(given) == 1 else 'them'}")
+    if args.argmax_over is not None and args.task == "loc":  # it changes the segmentation only (round 85a F3: ignored without a word)
+        raise UsageError(f"--argmax-over applies to the segmentation's argmax: use --task seg or both, or drop --argmax-over {args.argmax_over}")
+    args.argmax_over = "queried" if args.argmax_over is None else args.argmax_over
     args.voxel_resolution = VOXEL_RESOLUTION if args.voxel_resolution is None else args.voxel_resolution
     args.voxel_empty = VOXEL_EMPTY if args.voxel_empty is None else args.voxel_empty
 

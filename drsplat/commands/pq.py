@@ -14,6 +14,7 @@ from drsplat.defaults import MIN_NORM
 from drsplat.errors import InputError, UsageError, shown_path
 from drsplat.features.format import FEAT_SUFFIX, embedding_norms
 from drsplat.lang.codebook import PQ_KSUB, SCENE_PQ_M
+from drsplat.lang.plyformat import CODEBOOK_SUFFIX
 from drsplat.utils import load_npy
 
 log = logging.getLogger(__name__)
@@ -149,12 +150,27 @@ def float32_rows(path: Path, arr: np.ndarray, first_row: int = 0, file_rows: int
     return np.asarray(arr, np.float32)
 
 
+def warn_if_a_registrations_codebook(out: Path) -> None:
+    """A warning, before the training, when `out` is an existing `<stem>.codebook.faiss` beside a `<stem>.ply`: the
+    codebook a registration wrote for that PLY, whose codes would then decode to other vectors (round 85c F3: replaced
+    without a word; the PLY's next query said only that the codebook's d disagreed)."""
+    name = Path(out).name
+    if not name.endswith(CODEBOOK_SUFFIX) or not Path(out).is_file():
+        return
+    ply = Path(out).with_name(name[: -len(CODEBOOK_SUFFIX)] + ".ply")
+    if ply.is_file():
+        log.warning("--out %s replaces the codebook that registration writes for %s beside it: if %s uses it, its codes will "
+                    "decode to other vectors and it must be registered again (stop now, or choose another --out)",
+                    shown_path(out), shown_path(ply), ply.name)
+
+
 def run_train(args: argparse.Namespace) -> int:
     from drsplat.lang import train_codebook
     from drsplat.utils import check_output_writable
 
     guard_args(args, ("out",), protected_folders=protected_feature_folders("--features", args.features))
     check_output_writable(args.out)  # before minutes of k-means (round 57c: a read-only folder failed after them)
+    warn_if_a_registrations_codebook(args.out)
     x, usable = collect_embeddings(args.embeddings, args.features, args.max_train, args.seed)
     if x.shape[1] % args.m:
         divisors = [m for m in range(1, x.shape[1] + 1) if x.shape[1] % m == 0 and m <= 256]

@@ -413,7 +413,7 @@ def same_camera_file(a: Path, b: Path) -> bool:
         return False
 
 
-IMAGE_STAMPS = "image_stamps"  # manifest entry: each pair's image as it was when the pair was made (`utils.file_stamp`)
+IMAGE_STAMPS = "image_stamps"  # manifest entry: each pair's image and camera as they were when the pair was made (`pair_stamp`)
 STAMP_JOURNAL = featurefiles.STAMP_JOURNAL  # a run's stamps, a line per pair as it is written; folded into the manifest at the end
 
 
@@ -501,9 +501,41 @@ def read_journal(path: Path) -> dict[str, str]:
     return out
 
 
+def pair_stamp(cam) -> str | None:
+    """The stamp of what a camera's pair is made from: its image file (`utils.file_stamp`; None without one) and,
+    after '|', `camera_pixels_key`: the pixels the masks are made on come from both (round 85d F1: a camera file whose
+    lens distortion was corrected left every pair of the old lens in place, "skipped 50 already complete")."""
+    image = file_stamp(cam.image_path)
+    return None if image is None else f"{image}|{camera_pixels_key(cam)}"
+
+
+def camera_pixels_key(cam) -> str:
+    """12 hex digits of what of a camera shapes the image its masks are made on: its size, and, for a lens with
+    distortion, the pinhole it is undistorted to (fx, fy, cx, cy), the coefficients and the file's size they describe.
+    A pose, or the intrinsics of a camera without distortion (its photo is only resized), change no pixel."""
+    import hashlib
+
+    parts: list = [int(cam.width), int(cam.height)]
+    if cam.distortion is not None:
+        parts += [float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), np.asarray(cam.distortion, np.float64).tolist(),
+                  list(cam.unscaled_size) if cam.unscaled_size is not None else None]
+    return hashlib.blake2b(json.dumps(parts).encode(), digest_size=6).hexdigest()
+
+
+def stale_reason(recorded: str, cam) -> str | None:
+    """Why a pair whose recorded stamp is `recorded` is out of date for `cam` ("the image", "the camera"), or None. A
+    stamp of a folder written before 2026-12-07 holds the image's part only: its camera is not judged."""
+    image, bar, camera = recorded.partition("|")
+    if image != file_stamp(cam.image_path):
+        return "the image"
+    if bar and camera != camera_pixels_key(cam):
+        return "the camera (its size, or the lens distortion and the pinhole it is undistorted to)"
+    return None
+
+
 def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: ImageStamps | None = None) -> list:
-    """The cameras whose feature pair is missing, incomplete, or older than an edit of its image
-    (its recorded stamp differs from the image's now) in `out`; complete ones go to report.skipped.
+    """The cameras whose feature pair is missing, incomplete, or older than an edit of its image or
+    its camera (`stale_reason`) in `out`; complete ones go to report.skipped.
     In a folder that records stamps, a complete pair without one is made again: its image's state
     when it was made is unknown (a pair written just before a run was killed). A skipped pair of a
     folder that records none is stamped with its image as it is now (LangSplat's folders)."""
@@ -515,14 +547,14 @@ def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: ImageS
         seen.add(stem)
         if featurefiles.is_valid_pair(out, stem):
             recorded = stamps.known.get(stem) if stamps is not None else None
-            if recorded is not None and recorded != file_stamp(cam.image_path):
-                log.warning("%s: the image of %s changed since its features were made; recomputing them", out, stem)
+            if recorded is not None and (why := stale_reason(recorded, cam)) is not None:
+                log.warning("%s: %s of %s changed since its features were made; recomputing them", out, why, stem)
             elif recorded is None and stamps is not None and stamps.tracked:
                 log.warning("%s: the features of %s were written by a run that stopped before recording their image; recomputing them",
                             out, stem)
             else:
                 report.skipped.append(stem)
-                now = file_stamp(cam.image_path) if recorded is None and stamps is not None else None
+                now = pair_stamp(cam) if recorded is None and stamps is not None else None
                 if now is not None:
                     stamps.known[stem] = now
                 continue
@@ -626,7 +658,7 @@ def extract_features(
             cancel.raise_if_cancelled()
         if cam.name in todo:
             todo.discard(cam.name)
-            stamp = file_stamp(cam.image_path)  # the image as it is read, not as it may be by the end of the run
+            stamp = pair_stamp(cam)  # the image as it is read, not as it may be by the end of the run
             rgb, file_size = load_image_sized(cam)
             note_image(report, cam, rgb, file_size)
             seg, feats, times, counts = extract_image(rgb, generator, encoder, nms)

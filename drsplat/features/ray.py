@@ -40,10 +40,11 @@ from drsplat.features.extract import (
     extract_image,
     make_manifest,
     note_image,
+    pair_stamp,
     record_result,
     todo_cameras,
 )
-from drsplat.utils import CancelToken, file_stamp, progress
+from drsplat.utils import CancelToken, progress
 
 log = logging.getLogger(__name__)
 
@@ -284,7 +285,7 @@ def extract_features_ray(
 
         def send(a, c):
             again = c.name in read_at  # sent again (its worker lost): counted once in the report
-            read_at[c.name] = file_stamp(c.image_path)
+            read_at[c.name] = pair_stamp(c)
             rgb, file_size = load_image_sized(c)
             unseen[c.name] = unobserved_pixels(c, file_size)
             if not again:

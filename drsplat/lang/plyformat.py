@@ -63,11 +63,14 @@ CRC_TEXT = re.compile(r"[0-9a-fA-F]{8}")  # not int(x, 16) alone, which takes "-
 # PLY encoding
 
 
+CODEBOOK_SUFFIX = ".codebook.faiss"
+
+
 def codebook_path_for(ply_path: str | Path) -> Path:
     """The codebook file's name next to a registered PLY: `<stem>.codebook.faiss` (no link followed;
     where one is written: `written_codebook_path`)."""
     ply_path = Path(ply_path)
-    return ply_path.with_name(f"{ply_path.stem}.codebook.faiss")
+    return ply_path.with_name(f"{ply_path.stem}{CODEBOOK_SUFFIX}")
 
 
 def written_codebook_path(ply_path: str | Path) -> Path | None:
@@ -369,9 +372,9 @@ def read_field(scene: GaussianScene | PlyExtras, ply_path: str | Path, shared: b
             book = load_codebook(codebook_named_by(ply_path, meta["codebook"]))
         except InputError as exc:  # say whose codebook it is: the file named is not one the user typed
             raise InputError(exc.path, f"{exc.problem} (the codebook {ply_path.name}'s header names)", field=exc.field) from None
+        _check_codebook_crc(book.path, meta.get("codebook_crc"), ply_path, where)  # first: a replaced file is said so (round 85c F3)
         if book.kind != kind or book.dim != dim:
             raise InputError(book.path, f"codebook is {book.kind} d={book.dim}, but {ply_path.name} declares {kind} dim={dim}")
-        _check_codebook_crc(book.path, meta.get("codebook_crc"), ply_path, where)
         extra_codes = [j for j in _numbered_columns(scene, "lang_code_") if j >= book.m]
         if extra_codes:
             raise InputError(ply_path, f"more PQ code columns than the codebook's M={book.m} (lang_code_0 .. lang_code_{book.m - 1})",

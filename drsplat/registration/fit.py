@@ -308,7 +308,7 @@ def pose_points(views: Sequence[Camera], scale: float = 1.0) -> np.ndarray:
     return np.nan_to_num(points, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-PROBE_TIE = 1e-6  # relative to the scene's diameter: distances this close tie (`ProbeOrder`): the world's rounding, and the centre's float32 distances, decide nothing
+PROBE_TIE = 1e-6  # `ProbeOrder` rounds distances (in diameters) and cosines to this step, and equal ones tie: the world's rounding, and the centre's float32 distances, decide nothing (two values either side of a step's edge do not tie, however close)
 
 
 @dataclass
@@ -317,10 +317,12 @@ class ProbeOrder:
     (`pose_points`) over the views that score. The first is the view whose camera lies farthest from
     the scene's centre (`ProbeSpace`); each next one the pose farthest from the nearest of the views
     probed so far that scored (`scores_footprints`); a view that did not score is passed over and
-    moves no distance. Distances within PROBE_TIE of each other tie, and ties go to the view farther
-    from the centre, then to the lower pose (compared coordinate by coordinate), the name and
-    `Camera.exact_key`: never the list's order. Only an exactly symmetric capture (a ring of cameras
-    around the centre) gets to the pose, where nothing but the world's frame, the names or the list
+    moves no distance. Distances and cosines are rounded to PROBE_TIE (of the diameter) and equal
+    ones tie; ties go to the view farther from the centre, then to the one looking more toward it
+    (the cosine between its direction and the centre's: a rig's views share one camera centre), then to
+    the lower pose (compared coordinate by coordinate), the name and `Camera.exact_key`: never the
+    list's order. Only an exactly symmetric capture (a ring of cameras around the centre, a rig's
+    mirror-image views) gets to the pose, where nothing but the world's frame, the names or the list
     can tell its views apart. So the views probed depend on the cameras and the scene alone: not on the order
     a file lists them in (round 41: a shuffled transforms.json took other probe views and flipped
     the footprint, seg mIoU vol 0.594 -> 0.426), nor on their names, nor on views that see nothing
@@ -338,10 +340,16 @@ class ProbeOrder:
     def of(cls, views: Sequence[Camera], space: ProbeSpace | None = None) -> ProbeOrder:
         space = ProbeSpace.unit() if space is None else space
         points = pose_points(views, space.scale)
-        with np.errstate(over="ignore", invalid="ignore"):
-            away = np.round(np.linalg.norm(points[:, :3] - space.centre, axis=1) / space.scale, -round(math.log10(PROBE_TIE)))
-        away = np.nan_to_num(away, nan=np.inf)
-        ties = sorted(range(len(views)), key=lambda j: (-away[j], tuple(points[j].tolist()), views[j].name, views[j].exact_key()))
+        digits = -round(math.log10(PROBE_TIE))
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            to_centre = space.centre - points[:, :3]
+            distance = np.linalg.norm(to_centre, axis=1)
+            away = np.nan_to_num(np.round(distance / space.scale, digits), nan=np.inf)
+            # a rig's views share one camera centre (cube faces, a tripod panorama): the one looking most toward the scene's
+            # centre first, an angle that turns with the world, where the pose's coordinates do not (round 85a F1)
+            toward = np.round((points[:, 3:] / space.scale * to_centre).sum(axis=1) / distance, digits)
+        toward = np.nan_to_num(toward, nan=0.0, posinf=0.0, neginf=0.0)
+        ties = sorted(range(len(views)), key=lambda j: (-away[j], -toward[j], tuple(points[j].tolist()), views[j].name, views[j].exact_key()))
         rank = np.empty(len(views), np.int64)
         rank[ties] = np.arange(len(views))
         return cls(points, rank, np.full(len(views), np.inf), np.ones(len(views), bool))
