@@ -293,6 +293,17 @@ class _Reader:
                              field=field)
         return declared
 
+    def inner_count(self, where: str, items: str, field: str, item_bytes: int) -> int:
+        """The u8 count of `items` inside one record (`where`) at the read position, refused (naming `field` and the
+        record) when the bytes left cannot hold them: 2⁶⁰ points of an image was "truncated at byte 93 (needs
+        27670116110564327424 more bytes)", no field named (round 85d F4; the header's counts: `count`)."""
+        declared = self.one("<u8")
+        left = len(self.buf) - self.pos
+        if declared * item_bytes > left:
+            raise InputError(self.path, f"{where} declares {declared} {items} ({declared * item_bytes} bytes), but only {left} bytes "
+                             "follow: the count is wrong, or the file was cut short", field=field)
+        return declared
+
     def finish(self, count: int, records: str, field: str) -> None:
         """Refuse bytes after the declared records: a count smaller than the records present
         would otherwise drop the rest silently."""
@@ -354,7 +365,7 @@ def read_colmap_images_bin(path: Path) -> dict[int, ColmapImage]:
         qvec, tvec = r.take("<f8", 4).copy(), r.take("<f8", 3).copy()
         camera_id = r.one("<u4")
         name = r.cstring(f"image {image_id}", "NAME")
-        num = r.one("<u8")
+        num = r.inner_count(f"image {image_id}", "points", "NUM_POINTS2D", 24)
         obs = r.take([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], num)  # type: ignore[arg-type]
         xys = np.stack([obs["x"], obs["y"]], axis=1) if num else np.zeros((0, 2))
         images[image_id] = ColmapImage(image_id, qvec, tvec, camera_id, name, xys, obs["id"].copy())
@@ -375,16 +386,16 @@ def read_colmap_points_bin(path: Path) -> dict[int, np.ndarray]:
     buf, pos, size = r.buf, r.pos, len(r.buf)
     starts = []
     unpack = struct.Struct("<Q").unpack_from
-    for _ in range(declared):
+    for k in range(declared):
         if pos + POINT_HEAD > size:
             r.pos = pos
             r.take("u1", POINT_HEAD)  # the truncation error
         track = unpack(buf, pos + POINT_HEAD - 8)[0]
+        if pos + POINT_HEAD + POINT_TRACK_BYTES * track > size:
+            r.pos = pos + POINT_HEAD - 8
+            r.inner_count(f"point record {k}", "track elements", "TRACK_LENGTH", POINT_TRACK_BYTES)  # the error naming it
         starts.append(pos)
         pos += POINT_HEAD + POINT_TRACK_BYTES * track
-        if pos > size:
-            r.pos = pos - POINT_TRACK_BYTES * track
-            r.take("<i4", 2 * track)
     r.pos = pos
     r.finish(declared, "points", "num_points3D")
     at = np.asarray(starts, np.int64)[:, None]
@@ -750,6 +761,9 @@ class DatasetPaths:
             q = p.with_name(p.name + suffix)
             if q.is_file():
                 return q.resolve(), dataset_stem(name, is_file_name=False)  # resolved as a name with its suffix is (`image`)
+        q = _suffixed_in_any_case(p)
+        if q is not None:
+            return q.resolve(), dataset_stem(name, is_file_name=False)
         return None
 
     def may_hold(self, name: str) -> bool:
@@ -772,6 +786,20 @@ class DatasetPaths:
             return True
         base = _folded(target.name)
         return base in listing or any(base + suffix in listing for suffix in IMAGE_SUFFIXES_LOWER)
+
+
+def _suffixed_in_any_case(path: Path) -> Path | None:
+    """The file `path` + an image suffix spelled in any case (NAME.BMP, NAME.Jpg, NAME.TIF), the first in name order,
+    or None: `IMAGE_SUFFIXES` lists the common spellings only, and a camera file that names images without their
+    suffix (3DGS's cameras.json, NeRF's file_path) found no other (round 85d F2: "an extension drsplat does not read")."""
+    try:
+        entries = sorted(os.listdir(path.parent))
+    except (OSError, ValueError):
+        return None
+    for entry in entries:
+        if entry.startswith(path.name) and entry[len(path.name):].lower() in IMAGE_SUFFIXES_LOWER and (path.parent / entry).is_file():
+            return path.parent / entry
+    return None
 
 
 def _folded(name: str) -> str:
@@ -1530,6 +1558,11 @@ def _missing_hint(kind: str, found: Path, missing: str) -> str:
         return hint + f"; the folder {wanted.parent} does not exist" + _downscaled_folders_hint(wanted.parent)
     if os.path.lexists(wanted):
         return hint + "; it is there but is not a regular file (a folder, a broken link or a pipe?)"
+    spelled = [entry for entry in sorted(os.listdir(wanted.parent)) if entry != wanted.name and _folded(entry) == _folded(wanted.name)]
+    if spelled:  # round 85d F3: a name differing in case, or in Unicode's composed and decomposed accents (a zip made on macOS)
+        how = "in letter case" if unicodedata.normalize("NFC", spelled[0]) != unicodedata.normalize("NFC", wanted.name) else \
+            "in how its accented letters are encoded (Unicode NFC against NFD: a copy or zip from macOS?)"
+        return hint + f"; {spelled[0]!r} in that folder differs from the name the cameras give only {how}: rename one to match the other"
     # a name with an image suffix is opened as it is; one without (cameras.json, NeRF names) gets each suffix tried
     named = wanted.suffix.lower() in IMAGE_SUFFIXES_LOWER
     stem = wanted.stem if named else wanted.name

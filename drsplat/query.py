@@ -71,7 +71,10 @@ def field_rows(field: LanguageField, x: np.ndarray, what: str = "query") -> np.n
     return rows
 
 
-SAME_DIRECTION = 1e-9  # 1 - cos below which two unit rows are one direction: float32 rounding of a scaled copy is ~1e-14
+# 1 - cos below which two unit rows are one direction: a copy scaled by 1e-20 to 1e20 is within 2.1e-15 of its row after
+# float32 rounding, so 1e-12 keeps a margin; a wider one joined distinct labels through chains of near ones (round 86a F2:
+# at 1e-9, two labels 3° apart became one through 1,232 between them)
+SAME_DIRECTION = 1e-12
 
 
 def first_of_direction(units: np.ndarray) -> np.ndarray:

@@ -394,6 +394,9 @@ class LoadReport:
         if self.trailing_lines:
             return (f"{self.trailing_lines:,} more data lines follow the declared rows: the header's vertex count "
                     f"({self.rows_in_file:,}) may be smaller than the data, which is ignored")
+        if self.row_bytes and self.trailing_bytes < self.row_bytes:  # no row fits: the count cannot be the cause (round 85b F5)
+            return (f"{self.trailing_bytes:,} bytes follow the declared data, less than one row ({self.row_bytes} bytes): trailing "
+                    "data, which is ignored")
         rows = f", room for {self.trailing_bytes // self.row_bytes:,} more rows" if self.row_bytes else ""
         return (f"{self.trailing_bytes:,} bytes follow the declared data{rows}: the header's vertex count "
                 f"({self.rows_in_file:,}) may be smaller than the data, which is ignored")
@@ -446,6 +449,10 @@ def read_ply_header(path: Path) -> PlyHeader:
                 raise _fail(path, f"has an unknown format line (header line {lineno}); expected ascii, binary_little_endian or binary_big_endian")
             if fmt is not None:  # plyfile takes the last one, a hand parser the first: the rows would be read two ways
                 raise _fail(path, f"has two 'format' lines (header lines {fmt_line} and {lineno}); a PLY header has one")
+            if len(words) != 3 or words[2] != "1.0":  # round 85b F7: '2.0' (no such PLY) was read as 1.0 without a word, plyfile refuses it
+                version = repr(" ".join(words[2:])) if len(words) > 2 else "none"
+                raise _fail(path, f"has format line 'format {words[1]}' with version {version} (header line {lineno}); PLY has version "
+                                  "1.0 only, which every 3DGS writer writes")
             fmt, fmt_line = words[1], lineno
         elif key == "comment":
             comments.append(raw[len("comment"):].strip())
@@ -502,8 +509,10 @@ def _ascii_header_text(path: Path, header: bytes) -> tuple[str, str | None]:
             raise _fail(path, f"{shown}; a PLY header is ASCII text (remove the character, or re-export the file)")
         if problem is None:
             problem = shown
-            log.warning("%s: %s; the comment is dropped (a PLY header is ASCII text)", path, shown)
         lines.append("")
+    if problem is not None and not any(line.split()[:2] == ["format", "ascii"] for line in lines):
+        # an ASCII PLY's reader refuses it instead: a warning that it is dropped, then that error, disagreed (round 85b F4)
+        log.warning("%s: %s; the comment is dropped (a PLY header is ASCII text)", path, problem)
     return "\n".join(lines), problem
 
 
@@ -650,7 +659,7 @@ def read_ply_elements(path: Path) -> tuple[PlyHeader, dict[str, StoredRows]]:
             raise _fail(path, f"{header.non_ascii_comment}; an ASCII PLY's header must be ASCII text to be parsed (remove the "
                               "character, or re-export the file)")
         refuse_python_only_numbers(path, header.data_offset)
-        return header, {name: StoredRows.of(array, path) for name, array in _read_with_plyfile(path).items()}
+        return header, {name: StoredRows.of(array, path) for name, array in _read_with_plyfile(path, header).items()}
     endian = "<" if header.format == "binary_little_endian" else ">"
     data: dict[str, StoredRows] = {}
     offset = header.data_offset
@@ -707,14 +716,55 @@ def refuse_python_only_numbers(path: Path, data_offset: int) -> None:
             shown = block[start:end if end >= 0 else len(block)].decode("utf-8", "replace")
             # the character, not its first byte: an Arabic digit's lead byte read as Latin-1 showed as 'Ù'
             char = next((c for c in shown if c == "_" or ord(c) > 127), bad.group().decode("latin-1"))
-            raise _fail(path, f"data line {line} of the ASCII body ({clipped(shown, 80)!r}) holds {char!r}, "
-                              "which no PLY number has (Python would read 1_5 as 15)")
+            if looks_binary(block):  # round 85b F3: a binary body under 'format ascii' was told about Python's 1_5
+                raise _fail(path, f"its header says 'format ascii', but its body is binary data (data line {line} holds bytes such as "
+                                  f"{char!r} and control characters no text has): a binary PLY whose format line was changed?")
+            why = "Python would read 1_5 as 15" if char == "_" else "Python would read Unicode digits such as '١٥' as numbers"
+            raise _fail(path, f"data line {line} of the ASCII body ({clipped(shown, 80)!r}) holds {char!r}, which no PLY number has ({why})")
 
 
-def _read_with_plyfile(path: Path) -> dict[str, np.ndarray]:
+def ascii_integer_out_of_range(path: Path, header: PlyHeader) -> tuple[str, str] | None:
+    """(property, problem) of the first integer of an ASCII PLY's body outside its property's type, read row by row in
+    the header's elements; None when none is found or an element has list properties (rows of no fixed width)."""
+    with open(path, "rb") as f:
+        f.seek(header.data_offset)
+        lines = (line for line in (raw.split() for raw in f) if line)
+        for element in header.elements:
+            if element.has_lists:
+                return None
+            for row in range(element.count):
+                tokens = next(lines, None)
+                if tokens is None:
+                    return None
+                for (name, dtype), token in zip(element.properties, tokens):
+                    if np.dtype(dtype).kind not in "iu":
+                        continue
+                    limits = np.iinfo(np.dtype(dtype))
+                    try:
+                        value = int(token)
+                    except ValueError:
+                        continue
+                    if not limits.min <= value <= limits.max:
+                        declared = NUMPY_TO_PLY.get(f"{np.dtype(dtype).kind}{np.dtype(dtype).itemsize}", dtype)
+                        return name, (f"element '{element.name}': row {row}: property '{name}' holds {value}, outside its declared type "
+                                      f"{declared} ({limits.min} to {limits.max})")
+    return None
+
+
+def looks_binary(block: bytes) -> bool:
+    """Whether bytes read as text are binary data: a NUL, or more than a tenth of them control characters other than
+    tab, line feed and carriage return (an ASCII PLY's body is numbers, spaces and newlines)."""
+    controls = sum(block.count(bytes([b])) for b in range(32) if b not in (9, 10, 13))
+    return b"\x00" in block or controls > len(block) // 10
+
+
+def _read_with_plyfile(path: Path, header: PlyHeader | None = None) -> dict[str, np.ndarray]:
     try:
         ply = read_plyfile(path)
     except Exception as exc:  # plyfile raises many types for malformed ASCII
+        site = ascii_integer_out_of_range(path, header) if isinstance(exc, OverflowError) and header is not None else None
+        if site is not None:  # round 85b F8: numpy's "Python integer 300 out of bounds for uint8" named no row or property
+            raise _fail(path, site[1], field=site[0]) from None
         raise _fail(path, f"could not be parsed as ASCII PLY data ({exc.__class__.__name__}: {clipped(str(exc), 200)})") from None
     out = {}
     for element in ply.elements:
@@ -1548,6 +1598,13 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
         with np.errstate(over="ignore", invalid="ignore"):  # a double past float32 is inf, a signalling NaN a NaN: both counted later
             lo = np.stack([chunk[f"{prefix_min}{a}"][:need_chunks] for a in axes], axis=1).astype(np.float32)
             hi = np.stack([chunk[f"{prefix_max}{a}"][:need_chunks] for a in axes], axis=1).astype(np.float32)
+        bad = ~(np.isfinite(lo) & np.isfinite(hi))
+        if bad.any():  # round 85b F6: only their splats' non-finite values were counted, "1 row with NaN values" of a file with none
+            rows, cols = np.nonzero(bad)
+            side, value = (prefix_min, lo) if not np.isfinite(lo[rows[0], cols[0]]) else (prefix_max, hi)
+            log.warning("%s: field '%s%s': %d of %d chunks hold a range bound that is not finite (chunk %d: %g); no writer stores "
+                        "one, so the file is damaged: their splats decode to NaN or infinite values, counted and dropped below",
+                        path, side, axes[cols[0]], int(bad.any(axis=1).sum()), need_chunks, rows[0], value[rows[0], cols[0]])
         inverted = lo > hi
         if inverted.any():
             rows, cols = np.nonzero(inverted)

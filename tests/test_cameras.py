@@ -215,7 +215,8 @@ def test_truncated_colmap_binary(tmp_path):
     src = shared_path("fern", "sparse", "0")
     (sparse / "cameras.bin").write_bytes((src / "cameras.bin").read_bytes())
     (sparse / "images.bin").write_bytes((src / "images.bin").read_bytes()[:5000])
-    with pytest.raises(InputError, match="images.bin: is truncated"):
+    with pytest.raises(InputError, match=r"images.bin: field 'NUM_POINTS2D': image \d+ declares \d+ points \(\d+ bytes\), but only \d+ bytes "
+                                         "follow: the count is wrong, or the file was cut short"):
         load_cameras(tmp_path)
 
 
@@ -250,6 +251,14 @@ def test_a_colmap_binary_count_beyond_its_file_is_called_a_wrong_count(tmp_path,
     with pytest.raises(InputError, match=rf"{name}: field '{field}': declares {1 << 63} \w+, but the {len(record)} bytes after the count "
                                          r"hold at most 1 \(a record takes at least \d+ bytes\): the count is wrong"):
         read(path)
+    # round 85d F4: a record's own count (an image's points, a point's track) was "truncated at byte 93 (needs
+    # 27670116110564327424 more bytes)", no field named
+    if name != "cameras.bin":
+        inner = {"images.bin": "NUM_POINTS2D': image 1 declares 1152921504606846976 points", "points3D.bin": "TRACK_LENGTH': point record 0 declares "
+                 "1152921504606846976 track elements"}[name]
+        path.write_bytes(struct.pack("<Q", 1) + record[:-8] + struct.pack("<Q", 1 << 60))
+        with pytest.raises(InputError, match=rf"{name}: field '{inner} \(\d+ bytes\), but only 0 bytes follow: the count is wrong"):
+            read(path)
 
 
 def test_points3d_bin_reads_every_record_and_refuses_truncation_and_trailing_bytes(tmp_path):
@@ -267,7 +276,8 @@ def test_points3d_bin_reads_every_record_and_refuses_truncation_and_trailing_byt
     for pid, xyz, _ in records:
         assert points[pid].tolist() == list(xyz)
     for cut, words in ((8 + 20, "field .num_points3D.: declares 3 points, but the 20 bytes after the count hold at most 0"),  # in the first head
-                       (len(data) - 4, "is truncated")):  # inside the last track
+                       (len(data) - 4, r"field 'TRACK_LENGTH': point record 2 declares 1 track elements \(8 bytes\), but only 4 bytes "
+                                       "follow: the count is wrong, or the file was cut short")):  # inside the last track
         path.write_bytes(data[:cut])
         with pytest.raises(InputError, match=f"points3D.bin: {words}"):
             read_colmap_points_bin(path)
@@ -507,6 +517,43 @@ def test_cameras_whose_images_all_have_another_extension_say_where_they_looked(t
         Image.new("RGB", (8, 6)).save(tmp_path / "images" / f"r_{i}.jpg")
     with pytest.raises(InputError, match=r"every image file is missing: e\.g\. .*images/r_0\.png; r_0\.jpg in that folder has its name but "
                                          r"another extension: the cameras name '\.png' files"):
+        load_cameras(tmp_path)
+
+
+def test_images_named_without_a_suffix_are_found_in_any_case_of_theirs(tmp_path):
+    """Round 85d F2: a camera file that names its images without a suffix (NeRF's file_path, 3DGS's cameras.json) found
+    NAME.png or NAME.JPG but not NAME.BMP, NAME.Tif or NAME.Jpg, and then called those extensions unreadable."""
+    from PIL import Image
+
+    from drsplat.cameras import load_cameras
+
+    frames = [{"file_path": f"images/r_{i}", "transform_matrix": np.eye(4).tolist()} for i in range(3)]
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "w": 8, "h": 6, "frames": frames}))
+    (tmp_path / "images").mkdir()
+    for i, (suffix, kind) in enumerate(((".BMP", "BMP"), (".Tif", "TIFF"), (".Jpg", "JPEG"))):
+        Image.new("RGB", (8, 6)).save(tmp_path / "images" / f"r_{i}{suffix}", format=kind)
+    cams = load_cameras(tmp_path)
+    assert [c.image_path.name for c in cams] == ["r_0.BMP", "r_1.Tif", "r_2.Jpg"] and [c.name for c in cams] == ["r_0", "r_1", "r_2"]
+
+
+@pytest.mark.parametrize("spelling", ["case", "unicode"])
+def test_an_image_named_in_another_case_or_unicode_form_is_said_so(tmp_path, spelling):
+    """Round 85d F3: an image whose name differs from the camera file's only in letter case, or in composed against
+    decomposed accents (a zip made on macOS), was "missing", the path shown looking like the file `ls` lists."""
+    import unicodedata
+
+    from PIL import Image
+
+    from drsplat.cameras import load_cameras
+
+    named, stored = ("Orbit_0.png", "orbit_0.png") if spelling == "case" else \
+        (unicodedata.normalize("NFD", "\u00e9t\u00e9.png"), unicodedata.normalize("NFC", "\u00e9t\u00e9.png"))
+    frames = [{"file_path": f"images/{named}", "transform_matrix": np.eye(4).tolist()}]
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "w": 8, "h": 6, "frames": frames}))
+    (tmp_path / "images").mkdir()
+    Image.new("RGB", (8, 6)).save(tmp_path / "images" / stored)
+    how = "in letter case" if spelling == "case" else "in how its accented letters are encoded (Unicode NFC against NFD"
+    with pytest.raises(InputError, match=re.escape(f"; {stored!r} in that folder differs from the name the cameras give only {how}")):
         load_cameras(tmp_path)
 
 

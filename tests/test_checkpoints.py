@@ -112,6 +112,8 @@ def _bad(case: str, tmp_path):
         s["opacities"] = torch.zeros(50, dtype=torch.int64)
     elif case == "other":
         ckpt = {"state_dict": {"weight": torch.zeros(3)}}
+    elif case == "no means":  # round 85b F9: told it held no 'splats', its entries then listing splats
+        del s["means"]
     path = tmp_path / f"{case}.pt"
     torch.save(ckpt, path)
     return path
@@ -125,6 +127,7 @@ def _bad(case: str, tmp_path):
     ("degree", r"field 'shN': has 5 higher SH coefficients"),
     ("integer", r"field 'opacities': is a Tensor of torch.int64, not a floating-point tensor"),
     ("other", "holds neither a gsplat checkpoint's 'splats' nor a nerfstudio one's"),
+    ("no means", r"field 'splats.means': is a gsplat checkpoint whose 'splats' has no 'means' \(it holds opacities, quats, scales, sh0, shN\)"),
 ])
 def test_a_bad_checkpoint_is_one_error_naming_the_file_and_field(tmp_path, case, words):
     path = _bad(case, tmp_path)

@@ -397,9 +397,28 @@ def test_huge_ids_of_overlapping_levels_are_refused_not_wrapped_into_valid_rows(
     np.save(feat_path(tmp_path, "w"), np.eye(8, 4, dtype=np.float32))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        with pytest.raises(InputError, match=rf"w_s\.npy: mask id {2**62 + 5} at level 1 \({2**62 + 5 + 2**63} once offset by the "
-                                             rf"{2**63} ids of the levels before it\) is out of range"):
+        # since round 85d F5 any level's id past the embeddings is refused first, whichever level is read
+        with pytest.raises(InputError, match=rf"w_s\.npy: mask id {2**63 - 1} at level 0 is out of range"):
             read_features(tmp_path, "w", level=1)
+    seg[0, 0, 0], seg[1, 0, 0] = 3, 5  # restarting levels: level 1's id 5 is row 4 + 5, past the 8
+    np.save(seg_path(tmp_path, "w"), seg)
+    with pytest.raises(InputError, match=r"w_s\.npy: mask id 5 at level 1 \(9 once offset by the 4 ids of the levels before it\) is out of range"):
+        read_features(tmp_path, "w", level=1)
+
+
+@pytest.mark.parametrize("bad_level", [0, 3])
+def test_an_id_past_the_embeddings_at_a_level_not_read_is_refused_naming_it(tmp_path, bad_level):
+    """Round 85d F5: level 0's ids all 999 (24 embeddings) made the levels' ranges overlap, and reading level 1 blamed
+    its valid id 11 ("1011 once offset"); a 999 at level 3 passed without a word. An id ≥ M is no row in either reading
+    of the levels: refused first, naming its level."""
+    seg = np.full((4, 4, 4), -1, np.int64)
+    for lvl in range(4):
+        seg[lvl, lvl, :] = [6 * lvl, 6 * lvl + 1, 6 * lvl + 2, 6 * lvl + 5]  # cumulative ids, 6 masks a level
+    seg[bad_level, seg[bad_level] >= 0] = 999
+    np.save(seg_path(tmp_path, "v"), seg)
+    np.save(feat_path(tmp_path, "v"), np.eye(24, 8, dtype=np.float32) + 0.1)
+    with pytest.raises(InputError, match=rf"v_s\.npy: mask id 999 at level {bad_level} is out of range: v_f\.npy has only 24 embeddings"):
+        read_features(tmp_path, "v", level=1)
 
 
 def test_embeddings_of_another_dimension_name_the_odd_file_not_the_first_view(tmp_path):

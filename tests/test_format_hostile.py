@@ -203,6 +203,17 @@ def test_two_format_lines_are_refused(tmp_path):
         load_ply(tmp_path / "f.ply")
 
 
+@pytest.mark.parametrize("line", [b"format binary_little_endian 2.0", b"format binary_little_endian", b"format binary_little_endian 1.0 x"])
+def test_a_format_line_of_another_version_is_refused(tmp_path, line):
+    """Round 85b F7: 'format binary_little_endian 2.0' (no such PLY; plyfile refuses it) was read without a word."""
+    save_ply(small_scene(5), tmp_path / "a.ply")
+    data = (tmp_path / "a.ply").read_bytes()
+    (tmp_path / "v.ply").write_bytes(data.replace(b"format binary_little_endian 1.0", line, 1))
+    with pytest.raises(InputError, match=r"v.ply: has format line 'format binary_little_endian' with version .* \(header line 2\); PLY has "
+                                         "version 1.0 only"):
+        load_ply(tmp_path / "v.ply")
+
+
 def test_a_gzipped_version_4_spz_is_named_not_called_truncated(tmp_path):
     """Version 4 is a plain file of zstd streams; gzipped, it was read as a version 1-3 stream and called "truncated"."""
     scene = small_scene()

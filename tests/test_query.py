@@ -135,13 +135,16 @@ def test_rows_of_one_direction_are_found_as_every_pair_finds_them():
     bend = rng.normal(size=64)
     bend -= (bend @ side) * side
     bend /= np.linalg.norm(bend)
-    for angle in (0.5 * np.sqrt(2e-9), 2.0 * np.sqrt(2e-9), 1e-3):  # 1 - cos = angle²/2: inside, outside, far outside
+    for angle in (0.5 * np.sqrt(2 * dq.SAME_DIRECTION), 2.0 * np.sqrt(2 * dq.SAME_DIRECTION), 1e-3):  # 1 - cos = angle²/2: in, out, far out
         rows = np.concatenate([rows, (np.cos(angle) * side + np.sin(angle) * bend)[None].astype(np.float32)])
     rows = rows[rng.permutation(len(rows))]
     units = dq.query_rows(rows)
     got = first_of_direction(units)
     np.testing.assert_array_equal(got, first_of_direction_reference(units))
     assert len(np.unique(got)) < len(rows) - 20 and (got <= np.arange(len(rows))).all()
+    # round 86a F2: labels a few degrees apart are never joined through a chain of labels between them
+    chain = np.stack([np.cos(t) * side + np.sin(t) * bend for t in np.linspace(0.0, 0.05, 2000)]).astype(np.float32)
+    assert len(np.unique(first_of_direction(dq.query_rows(chain)))) > 1900
     for q in (0, 1):
         np.testing.assert_array_equal(first_of_direction(units[:q]), np.arange(q))
 

@@ -210,6 +210,51 @@ def test_an_ascii_ply_with_more_rows_than_its_header_declares_is_said(tmp_path, 
     assert load_ply_report(tmp_path / "ascii.ply")[1].findings() == []
 
 
+def test_ply_messages_name_what_is_wrong_round_85b(tmp_path, caplog):
+    """Round 85b F3-F5: a binary body under 'format ascii' was told about Python's '1_5'; a non-ASCII comment in an
+    ASCII PLY was warned "dropped", then refused; 9 bytes after the data had "room for 0 more rows", the vertex count
+    blamed."""
+    import logging
+
+    from plyfile import PlyData
+
+    from drsplat.scene import load_ply_report
+
+    save_ply(random_scene(6, 0), tmp_path / "bin.ply")
+    raw = (tmp_path / "bin.ply").read_bytes()
+    (tmp_path / "lying.ply").write_bytes(raw.replace(b"format binary_little_endian 1.0", b"format ascii 1.0", 1))
+    with pytest.raises(InputError, match=r"its header says 'format ascii', but its body is binary data") as caught:
+        load_ply(tmp_path / "lying.ply")
+    assert "1_5" not in str(caught.value)
+    ply = PlyData.read(str(tmp_path / "bin.ply"))
+    ply.text = True
+    ply.write(str(tmp_path / "ascii.ply"))
+    text = (tmp_path / "ascii.ply").read_bytes()
+    (tmp_path / "accent.ply").write_bytes(text.replace(b"element vertex", b"comment caf\xc3\xa9\nelement vertex", 1))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING), pytest.raises(InputError, match="an ASCII PLY's header must be ASCII text"):
+        load_ply(tmp_path / "accent.ply")
+    assert "dropped" not in caplog.text, caplog.text
+    (tmp_path / "accent_bin.ply").write_bytes(raw.replace(b"element vertex", b"comment caf\xc3\xa9\nelement vertex", 1))
+    with caplog.at_level(logging.WARNING):
+        assert load_ply(tmp_path / "accent_bin.ply").num_gaussians == 6 and "the comment is dropped" in caplog.text
+    # F8: an integer past its type was numpy's "Python integer 300 out of bounds for uint8", no row or property named
+    import numpy.lib.recfunctions as rfn
+    from plyfile import PlyElement
+
+    rows = rfn.append_fields(ply["vertex"].data, ["red"], [np.zeros(6, np.uint8)], usemask=False)
+    PlyData([PlyElement.describe(rows, "vertex")], text=True).write(str(tmp_path / "red.ply"))
+    head, body = (tmp_path / "red.ply").read_text().split("end_header\n")
+    lines = body.strip().split("\n")
+    lines[3] = lines[3].rsplit(" ", 1)[0] + " 300"
+    (tmp_path / "red.ply").write_text(head + "end_header\n" + "\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"field 'red': element 'vertex': row 3: property 'red' holds 300, outside its declared type uchar"):
+        load_ply(tmp_path / "red.ply")
+    (tmp_path / "tail.ply").write_bytes(raw + b"garbage!!")
+    notes = " ".join(load_ply_report(tmp_path / "tail.ply")[1].findings())
+    assert "9 bytes follow the declared data, less than one row" in notes and "vertex count" not in notes, notes
+
+
 def test_missing_file_error(tmp_path):
     """A missing scene does not exist; a symbolic link loop or a link whose target is gone says so (round 53: a loop
     "does not exist", though `ls` lists it), through every scene loader."""

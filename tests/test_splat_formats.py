@@ -770,9 +770,11 @@ def test_a_compressed_ply_of_a_scene_spanning_past_float32_reads_back_every_gaus
 
 
 @pytest.mark.parametrize("column, value", [("min_x", np.inf), ("max_scale_y", -np.inf), ("min_r", np.inf)])
-def test_a_compressed_chunk_range_that_is_infinite_drops_its_splats_without_numpys_warnings(tmp_path, column, value):
+def test_a_compressed_chunk_range_that_is_infinite_drops_its_splats_without_numpys_warnings(tmp_path, column, value, caplog):
     """Review of round 41: an infinite chunk range printed numpy's "invalid value encountered in multiply" before the
-    loader's own count of the rows it dropped."""
+    loader's own count of the rows it dropped. Round 85b F6: the counts named no chunk or property ("1 row with NaN
+    values" of a file that holds none): a warning names them."""
+    import logging
     import warnings
 
     from plyfile import PlyData, PlyElement
@@ -785,5 +787,7 @@ def test_a_compressed_chunk_range_that_is_infinite_drops_its_splats_without_nump
     PlyData(elements, text=False, byte_order="<").write(str(tmp_path / "inf.compressed.ply"))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        back, report = load_scene_report(tmp_path / "inf.compressed.ply")
+        with caplog.at_level(logging.WARNING):
+            back, report = load_scene_report(tmp_path / "inf.compressed.ply")
     assert back.num_gaussians < 300 and any("dropped" in note for note in report.findings())
+    assert f"field '{column}': 1 of 2 chunks hold a range bound that is not finite (chunk 0: {value:g})" in caplog.text, caplog.text

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -151,17 +152,27 @@ def float32_rows(path: Path, arr: np.ndarray, first_row: int = 0, file_rows: int
 
 
 def warn_if_a_registrations_codebook(out: Path) -> None:
-    """A warning, before the training, when `out` is an existing `<stem>.codebook.faiss` beside a `<stem>.ply`: the
-    codebook a registration wrote for that PLY, whose codes would then decode to other vectors (round 85c F3: replaced
-    without a word; the PLY's next query said only that the codebook's d disagreed)."""
-    name = Path(out).name
-    if not name.endswith(CODEBOOK_SUFFIX) or not Path(out).is_file():
-        return
-    ply = Path(out).with_name(name[: -len(CODEBOOK_SUFFIX)] + ".ply")
-    if ply.is_file():
-        log.warning("--out %s replaces the codebook that registration writes for %s beside it: if %s uses it, its codes will "
-                    "decode to other vectors and it must be registered again (stop now, or choose another --out)",
-                    shown_path(out), shown_path(ply), ply.name)
+    """A warning, before the training, when `out` (or the file a link there names) is an existing
+    `<stem>.codebook.faiss` beside another file of that stem (`<stem>.ply`, `<stem>.PLY`, `<stem>`: `register
+    --out` takes any): the codebook a registration wrote for it, whose codes would then decode to other vectors
+    (round 85c F3: replaced without a word; the PLY's next query said only that the codebook's d disagreed; round
+    86a F1: a `Room.PLY` or a link was missed)."""
+    for path in dict.fromkeys([Path(out), Path(out).resolve()]):
+        name = path.name
+        if not name.endswith(CODEBOOK_SUFFIX) or not path.is_file():
+            continue
+        stem = name[: -len(CODEBOOK_SUFFIX)]
+        try:
+            entries = sorted(os.listdir(path.parent))
+        except OSError:
+            continue
+        owners = [e for e in entries if e != name and Path(e).stem == stem and not e.endswith(CODEBOOK_SUFFIX) and (path.parent / e).is_file()]
+        if owners:
+            ply = path.parent / owners[0]
+            log.warning("--out %s replaces the codebook that registration writes for %s beside it: if %s uses it, its codes will "
+                        "decode to other vectors and it must be registered again (stop now, or choose another --out)",
+                        shown_path(out), shown_path(ply), ply.name)
+            return
 
 
 def run_train(args: argparse.Namespace) -> int:

@@ -153,7 +153,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         digits = 4 if mask.any() else next(d for d in range(4, 18) if f"{threshold:.{d}f}" != f"{top:.{d}f}" or d == 17)  # round 78b F1
         print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold + 0.0:.{digits}f}{left_out}", file=common.table_stream(args.out, args.scores))
         if args.out is not None and not mask.any():  # a PLY of no Gaussians, which drsplat itself (and the viewer) then refuses to open
-            raise DrsplatError(f"no Gaussian scores >= {threshold:.{digits}f} (the best score is {top:.{digits}f}): "
+            raise DrsplatError(f"no Gaussian scores >= {threshold + 0.0:.{digits}f} (the best score is {top:.{digits}f}): "
                                f"nothing written to {args.out}; lower --threshold")
         if args.out is not None:
             chosen = scene.subset(mask) if scene is not None else load_registered_rows(args.registered, mask, stamp)

@@ -258,10 +258,14 @@ def read_features_report(features_dir: str | Path, stem: str, level: int = DEFAU
     seg = _ids_as_int(seg, spath)
     if seg.size and seg.min() < -1:
         raise InputError(spath, f"mask ids must be >= -1, found {int(seg.min())}")
+    m = feats.shape[0]
+    for at, lvl in enumerate(seg):  # an id ≥ M is no row in either reading of the levels (round 85d F5: one at level 0 was
+        top = int(lvl.max()) if lvl.size else -1  # blamed on a valid level-1 id, one at level 3 passed without a word)
+        if top >= m:
+            raise InputError(spath, out_of_range_ids(top, 0, at, m, fpath.name, raw_dtype))
     ids = seg[level]
     counts = restarted_level_counts(seg)
     offset = 0 if counts is None else sum(counts[:level])
-    m = feats.shape[0]
     stored_top = int(ids.max())
     if stored_top >= 0 and stored_top + offset >= m:  # compared in Python ints, before any int64 sum could wrap
         raise InputError(spath, out_of_range_ids(stored_top + offset, offset, level, m, fpath.name, raw_dtype))

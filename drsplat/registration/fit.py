@@ -322,8 +322,9 @@ class ProbeOrder:
     (the cosine between its direction and the centre's: a rig's views share one camera centre), then to
     the lower pose (compared coordinate by coordinate), the name and `Camera.exact_key`: never the
     list's order. Only an exactly symmetric capture (a ring of cameras around the centre, a rig's
-    mirror-image views) gets to the pose, where nothing but the world's frame, the names or the list
-    can tell its views apart. So the views probed depend on the cameras and the scene alone: not on the order
+    mirror-image views) or a rig whose camera centre is the scene's centre to the last bit (it has no
+    direction to it: round 86a F3) gets to the pose, where nothing but the world's frame, the names or
+    the list can tell its views apart. So the views probed depend on the cameras and the scene alone: not on the order
     a file lists them in (round 41: a shuffled transforms.json took other probe views and flipped
     the footprint, seg mIoU vol 0.594 -> 0.426), nor on their names, nor on views that see nothing
     (round 49: a room's views renamed, then one blind camera added, flipped the footprint twice,
