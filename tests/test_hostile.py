@@ -725,9 +725,9 @@ def test_pq_train_over_a_registrations_codebook_warns_before_training(tmp_path, 
     # round 86a F1: `register --out Room.PLY` (or no suffix) writes Room.codebook.faiss too, and a link there was missed
     (tmp_path / "scene.ply").rename(tmp_path / "scene.PLY")
     (tmp_path / "link.faiss").symlink_to(out)
-    for given in (out, tmp_path / "link.faiss"):
-        code, err = run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", given], capsys)
-        assert code == 0 and "scene.PLY beside it" in err, (given, err)
+    for named in (out, tmp_path / "link.faiss"):
+        code, err = run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", named], capsys)
+        assert code == 0 and "scene.PLY beside it" in err, (named, err)
 
 
 def test_pq_train_m_that_does_not_divide_is_a_usage_error(tmp_path, world, capsys):
