@@ -267,6 +267,36 @@ def test_surface_stats_kernel_agrees_with_reference(case):
 
 
 
+def test_surface_stats_agree_with_the_reference_at_the_in_front_limit():
+    """Round 86b F1: Gaussians whose ray depth lies within ulps of the in-front limit (1 - τ)·D fell on the other side in
+    the reference, whose directions and depths were matrix products (BLAS rounding) where the kernel sums left to
+    right: 36 of 17,280 'front' sums differed over 10 cameras. Nine tiny Gaussians a pixel at the limit, -4..+4 ulps."""
+    for trial in range(3):
+        rng = np.random.default_rng(trial)
+        cam = look_at_camera(rng.normal(size=3) * 3, rng.normal(size=3), 16, 12, fov_x_deg=60)
+        h, w, k = cam.height, cam.width, 9
+        origin, dirs = cam.pixel_rays()
+        means = np.zeros((h * w * (k + 1), 3))
+        ids, median = np.full((h, w, k), -1, np.int32), np.zeros((h, w), np.int32)
+        g = 0
+        for p in range(h * w):
+            depth = rng.uniform(0.5, 5.0)
+            means[g], median.flat[p] = origin + depth * dirs[p], g
+            g += 1
+            limit = (1.0 - FRONT_TOLERANCE) * depth
+            for s in range(k):
+                means[g] = origin + (limit + (s - k // 2) * np.spacing(limit)) * dirs[p]
+                ids.reshape(-1, k)[p, s] = g
+                g += 1
+        prec = np.zeros((len(means), 6))
+        prec[:, [0, 3, 5]] = 1e18  # scales of 1e-9: t* is the mean's depth, clamped
+        geometry = RayGeometry(means, prec, np.full(len(means), 3e-9))
+        weights = np.full((h, w, k), 0.01, np.float32)
+        got, want = surface_stats(geometry, cam, ids, weights, median)[0], surface_stats_reference(geometry, cam, ids, weights, median)
+        np.testing.assert_array_equal(got.front, want.front)
+        assert 0 < np.count_nonzero(got.front) < got.front.size  # both sides of the limit
+
+
 @pytest.mark.parametrize("case", ["random", "hard", "all_empty", "k1"])
 def test_surface_stats_over_candidates_are_the_reference_bits(case):
     """Given the ascending ids a culled view projected (`candidates`: every Gaussian its lists name,

@@ -86,6 +86,7 @@ def test_intersections_hard_cases():
     many = np.ones((70, 3, 1), bool)  # one column, masks 63/64 straddle a word boundary
     np.testing.assert_array_equal(intersections(many), np.full((70, 70), 3))
     assert intersections(np.zeros((0, 4, 4), bool)).shape == (0, 0)
+    assert intersections_reference(np.zeros((0, 4, 4), bool)).shape == (0, 0)  # round 86b F3: the reference raised
 
 
 @pytest.mark.parametrize("seed", range(12))

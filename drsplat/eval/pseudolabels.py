@@ -332,10 +332,12 @@ def pseudo_labels(gaussians, points: np.ndarray, point_labels: np.ndarray, radiu
     gaussians: a GaussianScene, or a tuple (means [N,3], rotations [N,3,3], scales [N,3]).
     points: [P, 3]; point_labels: [P] int, −1 for unannotated. radius r: Mahalanobis cut-off.
     Returns `PseudoLabels` (see the module docstring for the rule). Both engines give the labels
-    of `pseudo_labels_reference` (every point against every Gaussian), except where two labels' votes tie in exact
-    arithmetic: each computes D in its own order (the grid through the whitening W, the reference and the kdtree
-    through `mahalanobis_sq`), so rounding breaks such a tie (two points mirrored about a mean) either way (round 71a F5:
-    4 of 300 random cases built around ties):
+    of `pseudo_labels_reference` (every point against every Gaussian), except at two knife edges of exact arithmetic,
+    where each computes D in its own order (the engines through the whitening W, the grid's kernel and the kdtree's
+    `_whitened_sq` each in their own order, the reference through `mahalanobis_sq`), so rounding decides them either
+    way: two labels' votes that tie (two points mirrored about a mean; round 71a F5: 4 of 300 random cases built around
+    ties), and a point at D = r² exactly, inside by one formula and outside by another (round 86b F2: 14-18 of 300
+    Gaussians each with a point placed there; a point must lie within ~1e-15 of the cut-off):
 
     - "grid" (default): the points are bucketed in a uniform grid; a parallel numba kernel visits,
       per Gaussian, the cells of the ellipsoid's axis-aligned box (half-extent r·sqrt(Σ_kk), tight

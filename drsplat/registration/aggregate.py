@@ -661,13 +661,20 @@ def ray_depths_reference(geometry: RayGeometry, camera, ids: np.ndarray) -> np.n
     h, w, k = ids.shape
     if (h, w) != (camera.height, camera.width):
         raise ValueError(f"top-k lists of {w}x{h} pixels do not match the {camera.width}x{camera.height} camera")
-    origin, dirs = camera.pixel_rays()
+    origin = camera.ray_origin()
+    ys, xs = np.mgrid[0:h, 0:w]
+    rx, ry = (xs.ravel() + 0.5 - camera.cx) / camera.fx, (ys.ravel() + 0.5 - camera.cy) / camera.fy
+    rm = np.asarray(camera.R, np.float64)
+    # d and z summed left to right, as the kernel sums them: `pixel_rays`' matrix product rounds as the BLAS does, and a
+    # depth a few ulps from the in-front limit then fell on the other side of it (round 86b F1)
+    dirs = np.stack([rm[0, j] * rx + rm[1, j] * ry + rm[2, j] for j in range(3)], axis=1)
     g = np.maximum(ids.reshape(-1, k), 0)
     p = geometry.precisions[g]  # [P, k, 6]
     d = dirs[:, None, :]
     v = geometry.means[g] - origin
     rot, trans = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
-    zc = geometry.means[g] @ rot[2] + trans[2]
+    m = geometry.means[g]
+    zc = rot[2, 0] * m[..., 0] + rot[2, 1] * m[..., 1] + rot[2, 2] * m[..., 2] + trans[2]  # the kernel's order, not BLAS's
     reach = geometry.reach[g]
     # precisions of ±inf (hostile geometry) give inf - inf = NaN here, as in the kernel: no numpy warning for it
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):

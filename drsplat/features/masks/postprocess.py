@@ -109,7 +109,7 @@ def intersections(masks: np.ndarray) -> np.ndarray:
 
 def intersections_reference(masks: np.ndarray) -> np.ndarray:
     """Obviously-correct reference of `intersections`: a float64 matrix product of flat masks."""
-    flat = masks.reshape(masks.shape[0], -1).astype(np.float64)
+    flat = masks.reshape(masks.shape[0], int(np.prod(masks.shape[1:]))).astype(np.float64)  # -1 cannot be told for 0 masks (round 86b F3)
     return np.rint(flat @ flat.T).astype(np.int64)
 
 
