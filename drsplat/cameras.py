@@ -726,6 +726,7 @@ class DatasetPaths:
     source: Path
     warned: bool = False
     listings: dict = dataclasses.field(default_factory=dict)  # folder -> its entries case-folded, or None: unknown (`may_hold`)
+    suffixed: dict = dataclasses.field(default_factory=dict)  # folder -> {name without its image suffix: the entry}, `suffixed_in_any_case`
 
     def image(self, name: str) -> Path:
         target = self.root / name  # an absolute name replaces root, as the file asked
@@ -761,10 +762,30 @@ class DatasetPaths:
             q = p.with_name(p.name + suffix)
             if q.is_file():
                 return q.resolve(), dataset_stem(name, is_file_name=False)  # resolved as a name with its suffix is (`image`)
-        q = _suffixed_in_any_case(p)
+        q = self.suffixed_in_any_case(p)
         if q is not None:
             return q.resolve(), dataset_stem(name, is_file_name=False)
         return None
+
+    def suffixed_in_any_case(self, path: Path) -> Path | None:
+        """The file `path` + an image suffix spelled in any case (NAME.BMP, NAME.Jpg, NAME.TIF), the first in name order,
+        or None: `IMAGE_SUFFIXES` lists the common spellings only, and a camera file that names images without their
+        suffix (3DGS's cameras.json, NeRF's file_path) found no other (round 85d F2: "an extension drsplat does not
+        read"). Each folder is listed once (round 86c F1: listed for every name, 12,000 .TIF images took 92 s)."""
+        folder = path.parent
+        if folder not in self.suffixed:
+            try:
+                entries = sorted(os.listdir(folder))
+            except (OSError, ValueError):
+                entries = []
+            table: dict[str, str] = {}
+            for entry in entries:
+                base, dot, suffix = entry.rpartition(".")
+                if dot and f".{suffix}".lower() in IMAGE_SUFFIXES_LOWER:
+                    table.setdefault(base, entry)
+            self.suffixed[folder] = table
+        entry = self.suffixed[folder].get(path.name)
+        return folder / entry if entry is not None and (folder / entry).is_file() else None
 
     def may_hold(self, name: str) -> bool:
         """False when the folder of the image `name` names lists no entry of that name, with or without an
@@ -788,18 +809,29 @@ class DatasetPaths:
         return base in listing or any(base + suffix in listing for suffix in IMAGE_SUFFIXES_LOWER)
 
 
-def _suffixed_in_any_case(path: Path) -> Path | None:
-    """The file `path` + an image suffix spelled in any case (NAME.BMP, NAME.Jpg, NAME.TIF), the first in name order,
-    or None: `IMAGE_SUFFIXES` lists the common spellings only, and a camera file that names images without their
-    suffix (3DGS's cameras.json, NeRF's file_path) found no other (round 85d F2: "an extension drsplat does not read")."""
-    try:
-        entries = sorted(os.listdir(path.parent))
-    except (OSError, ValueError):
-        return None
-    for entry in entries:
-        if entry.startswith(path.name) and entry[len(path.name):].lower() in IMAGE_SUFFIXES_LOWER and (path.parent / entry).is_file():
-            return path.parent / entry
-    return None
+def _same_spelling(entry: str, wanted: str) -> bool:
+    """Whether a folder's entry is the image `wanted` names, read case- and normalisation-blind, with an image suffix
+    of its own where `wanted` has none (round 86c F2: the camera name 'img' beside IMG.png was not said)."""
+    if _folded(entry) == _folded(wanted):
+        return True
+    base, dot, suffix = entry.rpartition(".")
+    return bool(dot) and Path(wanted).suffix.lower() not in IMAGE_SUFFIXES_LOWER and f".{suffix}".lower() in IMAGE_SUFFIXES_LOWER \
+        and _folded(base) == _folded(wanted)
+
+
+def _spelling_difference(entry: str, wanted: str) -> str:
+    """How two names `_same_spelling` finds alike differ: in Unicode's composed and decomposed accents, in letter case,
+    or in what Unicode's case folding takes as one (ß and ss, a ligature: round 86c F6 called that "letter case"); an
+    image suffix of the entry's own, where `wanted` has none, is named too."""
+    extra = ""
+    if _folded(entry) != _folded(wanted):  # alike only without the entry's image suffix
+        entry, extra = entry.rpartition(".")[0], " (and it has an image suffix the cameras leave out)"
+    a, b = unicodedata.normalize("NFC", entry), unicodedata.normalize("NFC", wanted)
+    if a == b:
+        return "in how its accented letters are encoded (Unicode NFC against NFD: a copy or zip from macOS?)" + extra
+    if a.lower() == b.lower():
+        return "in letter case" + extra
+    return "in letter case as Unicode compares it (ß and ss, a ligature and its letters)" + extra
 
 
 def _folded(name: str) -> str:
@@ -1558,11 +1590,10 @@ def _missing_hint(kind: str, found: Path, missing: str) -> str:
         return hint + f"; the folder {wanted.parent} does not exist" + _downscaled_folders_hint(wanted.parent)
     if os.path.lexists(wanted):
         return hint + "; it is there but is not a regular file (a folder, a broken link or a pipe?)"
-    spelled = [entry for entry in sorted(os.listdir(wanted.parent)) if entry != wanted.name and _folded(entry) == _folded(wanted.name)]
+    spelled = [entry for entry in sorted(os.listdir(wanted.parent)) if entry != wanted.name and _same_spelling(entry, wanted.name)]
     if spelled:  # round 85d F3: a name differing in case, or in Unicode's composed and decomposed accents (a zip made on macOS)
-        how = "in letter case" if unicodedata.normalize("NFC", spelled[0]) != unicodedata.normalize("NFC", wanted.name) else \
-            "in how its accented letters are encoded (Unicode NFC against NFD: a copy or zip from macOS?)"
-        return hint + f"; {spelled[0]!r} in that folder differs from the name the cameras give only {how}: rename one to match the other"
+        return hint + f"; {spelled[0]!r} in that folder differs from the name the cameras give only {_spelling_difference(spelled[0], wanted.name)}: " \
+            "rename one to match the other"
     # a name with an image suffix is opened as it is; one without (cameras.json, NeRF names) gets each suffix tried
     named = wanted.suffix.lower() in IMAGE_SUFFIXES_LOWER
     stem = wanted.stem if named else wanted.name

@@ -753,8 +753,8 @@ def ascii_integer_out_of_range(path: Path, header: PlyHeader) -> tuple[str, str]
 
 def looks_binary(block: bytes) -> bool:
     """Whether bytes read as text are binary data: a NUL, or more than a tenth of them control characters other than
-    tab, line feed and carriage return (an ASCII PLY's body is numbers, spaces and newlines)."""
-    controls = sum(block.count(bytes([b])) for b in range(32) if b not in (9, 10, 13))
+    the whitespace Python's split() takes (an ASCII PLY's body is numbers, spaces and newlines)."""
+    controls = sum(block.count(bytes([b])) for b in range(32) if b not in (9, 10, 11, 12, 13))  # whitespace to split() (round 86c F7)
     return b"\x00" in block or controls > len(block) // 10
 
 
@@ -1602,10 +1602,12 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
         if bad.any():  # round 85b F6: only their splats' non-finite values were counted, "1 row with NaN values" of a file with none
             rows, cols = np.nonzero(bad)
             side, value = (prefix_min, lo) if not np.isfinite(lo[rows[0], cols[0]]) else (prefix_max, hi)
-            log.warning("%s: field '%s%s': %d of %d chunks hold a range bound that is not finite (chunk %d: %g); no writer stores "
+            named = sorted({f"{p}{axes[c]}" for p, v in ((prefix_min, lo), (prefix_max, hi)) for c in np.nonzero(~np.isfinite(v).all(axis=0))[0]})
+            others = f" (also {', '.join(n for n in named if n != f'{side}{axes[cols[0]]}')})" if len(named) > 1 else ""
+            log.warning("%s: field '%s%s'%s: %d of %d chunks hold a range bound that is not finite (chunk %d: %g); no writer stores "
                         "one, so the file is damaged: their splats decode to NaN or infinite values, counted and dropped below",
-                        path, side, axes[cols[0]], int(bad.any(axis=1).sum()), need_chunks, rows[0], value[rows[0], cols[0]])
-        inverted = lo > hi
+                        path, side, axes[cols[0]], others, int(bad.any(axis=1).sum()), need_chunks, rows[0], value[rows[0], cols[0]])
+        inverted = (lo > hi) & ~bad  # a non-finite bound is said above, not as a mirrored range (round 86c F5)
         if inverted.any():
             rows, cols = np.nonzero(inverted)
             log.warning("%s: field '%s%s': %d of %d chunks hold a range whose min is above its max (chunk %d: %g > %g); no writer "

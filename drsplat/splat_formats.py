@@ -414,9 +414,14 @@ def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
                    if isinstance(data.get(group), dict) and fields[0] in data[group]), None)
     if layout is None:
         for name, (group, fields) in CHECKPOINT_LAYOUTS.items():  # the group there without its means (round 85b F9: "holds neither ... 'splats'")
-            if isinstance(data.get(group), dict):
-                held = ", ".join(sorted(map(str, data[group]))[:8]) or "nothing"
-                raise InputError(path, f"is a {name} whose '{group}' has no '{fields[0]}' (it holds {held})", field=f"{group}.{fields[0]}")
+            if not isinstance(data.get(group), dict):
+                continue
+            held = ", ".join(sorted(map(str, data[group]))[:8]) or "nothing"
+            if group == "pipeline" and not any(str(key).startswith(NERFSTUDIO_PREFIX) for key in data[group]):
+                # a NeRF's checkpoint (nerfacto): no Gaussians at all, not a damaged splat file (round 86c F4)
+                raise InputError(path, f"is a nerfstudio checkpoint of a model without Gaussians (its 'pipeline' holds no "
+                                       f"'{NERFSTUDIO_PREFIX}*': {held}, ...): a NeRF such as nerfacto, not splatfacto")
+            raise InputError(path, f"is a {name} whose '{group}' has no '{fields[0]}' (it holds {held})", field=f"{group}.{fields[0]}")
         raise InputError(path, f"holds neither a gsplat checkpoint's 'splats' nor a nerfstudio one's 'pipeline' with "
                                f"'{NERFSTUDIO_PREFIX}means' (its entries: {', '.join(sorted(map(str, data))[:8]) or 'none'})")
     group, (k_means, k_scales, k_quats, k_opacities, k_dc, k_rest) = CHECKPOINT_LAYOUTS[layout]

@@ -536,7 +536,22 @@ def test_images_named_without_a_suffix_are_found_in_any_case_of_theirs(tmp_path)
     assert [c.image_path.name for c in cams] == ["r_0.BMP", "r_1.Tif", "r_2.Jpg"] and [c.name for c in cams] == ["r_0", "r_1", "r_2"]
 
 
-@pytest.mark.parametrize("spelling", ["case", "unicode"])
+def test_a_folder_is_listed_once_for_the_suffixes_of_many_names(tmp_path, monkeypatch):
+    """Round 86c F1: each name without a suffix listed and sorted its whole folder again (12,000 .TIF images: 92 s)."""
+    import drsplat.cameras as dc
+
+    (tmp_path / "images").mkdir()
+    for i in range(40):
+        (tmp_path / "images" / f"v_{i}.TIF").write_bytes(b"x")
+    listed = []
+    real = dc.os.listdir
+    monkeypatch.setattr(dc.os, "listdir", lambda folder: listed.append(folder) or real(folder))
+    paths = dc.DatasetPaths(tmp_path, tmp_path / "transforms.json")
+    assert [paths.find(f"images/v_{i}").name for i in range(40)] == [f"v_{i}.TIF" for i in range(40)]
+    assert len(listed) <= 2, listed  # `may_hold`'s listing and the suffixes' table, once each
+
+
+@pytest.mark.parametrize("spelling", ["case", "unicode", "unsuffixed", "folding"])
 def test_an_image_named_in_another_case_or_unicode_form_is_said_so(tmp_path, spelling):
     """Round 85d F3: an image whose name differs from the camera file's only in letter case, or in composed against
     decomposed accents (a zip made on macOS), was "missing", the path shown looking like the file `ls` lists."""
@@ -546,13 +561,17 @@ def test_an_image_named_in_another_case_or_unicode_form_is_said_so(tmp_path, spe
 
     from drsplat.cameras import load_cameras
 
-    named, stored = ("Orbit_0.png", "orbit_0.png") if spelling == "case" else \
-        (unicodedata.normalize("NFD", "\u00e9t\u00e9.png"), unicodedata.normalize("NFC", "\u00e9t\u00e9.png"))
+    named, stored = {"case": ("Orbit_0.png", "orbit_0.png"),
+                     "unicode": (unicodedata.normalize("NFD", "\u00e9t\u00e9.png"), unicodedata.normalize("NFC", "\u00e9t\u00e9.png")),
+                     "unsuffixed": ("img", "IMG.png"),  # round 86c F2: a name without a suffix was not said
+                     "folding": ("Strasse.png", "Stra\u00dfe.png")}[spelling]  # round 86c F6: called "letter case"
     frames = [{"file_path": f"images/{named}", "transform_matrix": np.eye(4).tolist()}]
     (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "w": 8, "h": 6, "frames": frames}))
     (tmp_path / "images").mkdir()
     Image.new("RGB", (8, 6)).save(tmp_path / "images" / stored)
-    how = "in letter case" if spelling == "case" else "in how its accented letters are encoded (Unicode NFC against NFD"
+    how = {"case": "in letter case", "unicode": "in how its accented letters are encoded (Unicode NFC against NFD",
+           "unsuffixed": "in letter case (and it has an image suffix the cameras leave out)",
+           "folding": "in letter case as Unicode compares it (ß and ss"}[spelling]
     with pytest.raises(InputError, match=re.escape(f"; {stored!r} in that folder differs from the name the cameras give only {how}")):
         load_cameras(tmp_path)
 

@@ -114,6 +114,8 @@ def _bad(case: str, tmp_path):
         ckpt = {"state_dict": {"weight": torch.zeros(3)}}
     elif case == "no means":  # round 85b F9: told it held no 'splats', its entries then listing splats
         del s["means"]
+    elif case == "nerfacto":  # round 86c F4: a NeRF's checkpoint was told it lacked its Gaussians' means, as if damaged
+        ckpt = {"pipeline": {"_model.field.mlp_base.params": torch.zeros(3)}, "step": 1}
     path = tmp_path / f"{case}.pt"
     torch.save(ckpt, path)
     return path
@@ -128,6 +130,7 @@ def _bad(case: str, tmp_path):
     ("integer", r"field 'opacities': is a Tensor of torch.int64, not a floating-point tensor"),
     ("other", "holds neither a gsplat checkpoint's 'splats' nor a nerfstudio one's"),
     ("no means", r"field 'splats.means': is a gsplat checkpoint whose 'splats' has no 'means' \(it holds opacities, quats, scales, sh0, shN\)"),
+    ("nerfacto", r"is a nerfstudio checkpoint of a model without Gaussians .*a NeRF such as nerfacto, not splatfacto"),
 ])
 def test_a_bad_checkpoint_is_one_error_naming_the_file_and_field(tmp_path, case, words):
     path = _bad(case, tmp_path)

@@ -718,6 +718,9 @@ def test_pq_train_over_a_registrations_codebook_warns_before_training(tmp_path, 
     assert run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", out], capsys)[0] == 0
     code, err = run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", out], capsys)
     assert code == 0 and "replaces" not in err, "no PLY of that stem beside it: an ordinary output"
+    (tmp_path / "scene.npy").write_bytes(b"\x93NUMPY")  # round 86c F3: the embeddings of that stem are no registration
+    code, err = run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", out], capsys)
+    assert code == 0 and "replaces" not in err, err
     (tmp_path / "scene.ply").write_bytes(b"ply\n")
     code, err = run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", out], capsys)
     assert code == 0 and "--out " in err and "replaces the codebook that registration writes for" in err and "scene.ply beside it" in err, err

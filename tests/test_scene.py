@@ -226,6 +226,9 @@ def test_ply_messages_name_what_is_wrong_round_85b(tmp_path, caplog):
     with pytest.raises(InputError, match=r"its header says 'format ascii', but its body is binary data") as caught:
         load_ply(tmp_path / "lying.ply")
     assert "1_5" not in str(caught.value)
+    (tmp_path / "formfeed.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n\x0c1_5\x0c\n")
+    with pytest.raises(InputError, match="Python would read 1_5 as 15"):  # round 86c F7: a form feed is whitespace, not binary
+        load_ply(tmp_path / "formfeed.ply")
     ply = PlyData.read(str(tmp_path / "bin.ply"))
     ply.text = True
     ply.write(str(tmp_path / "ascii.ply"))

@@ -791,3 +791,4 @@ def test_a_compressed_chunk_range_that_is_infinite_drops_its_splats_without_nump
             back, report = load_scene_report(tmp_path / "inf.compressed.ply")
     assert back.num_gaussians < 300 and any("dropped" in note for note in report.findings())
     assert f"field '{column}': 1 of 2 chunks hold a range bound that is not finite (chunk 0: {value:g})" in caplog.text, caplog.text
+    assert "mirrored" not in caplog.text, "round 86c F5: a non-finite bound is no mirrored range"

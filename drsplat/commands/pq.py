@@ -166,13 +166,23 @@ def warn_if_a_registrations_codebook(out: Path) -> None:
             entries = sorted(os.listdir(path.parent))
         except OSError:
             continue
-        owners = [e for e in entries if e != name and Path(e).stem == stem and not e.endswith(CODEBOOK_SUFFIX) and (path.parent / e).is_file()]
+        owners = [e for e in entries if e != name and Path(e).stem == stem and not e.endswith(CODEBOOK_SUFFIX) and _is_ply(path.parent / e)]
         if owners:
             ply = path.parent / owners[0]
             log.warning("--out %s replaces the codebook that registration writes for %s beside it: if %s uses it, its codes will "
                         "decode to other vectors and it must be registered again (stop now, or choose another --out)",
                         shown_path(out), shown_path(ply), ply.name)
             return
+
+
+def _is_ply(path: Path) -> bool:
+    """Whether `path` is a regular file that begins as a PLY does ('ply' and a line end): a registration's output, not
+    the embeddings or notes of the same stem (round 86c F3: `--embeddings crops.npy --out crops.codebook.faiss` warned)."""
+    try:
+        with open(path, "rb") as f:
+            return path.is_file() and f.read(4) in (b"ply\n", b"ply\r")
+    except OSError:
+        return False
 
 
 def run_train(args: argparse.Namespace) -> int:
