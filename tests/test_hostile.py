@@ -363,6 +363,11 @@ def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_i
                         "--threshold", "0.5", "--mode", "selection"])
     err = capsys.readouterr().err
     assert code == 0 and "--threshold and --mode selection apply to a query" in err, err
+    # round 86d F6: one flag alone was said with the other ("--threshold and --mode highlight", not given)
+    code = viewer_main([str(demo / "registered.ply"), "--screenshot", str(tmp_path / "t.png"), "--width", "32", "--height", "32",
+                        "--threshold", "0.5"])
+    err = capsys.readouterr().err
+    assert code == 0 and "--threshold applies to a query" in err and "--mode" not in err, err
     # round 53: with --mode segmentation (the demo's oracle labels) --threshold was dropped without a word
     code = viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--screenshot", str(tmp_path / "g.png"), "--width", "32",
                         "--height", "32", "--threshold", "0.2", "--mode", "segmentation"])

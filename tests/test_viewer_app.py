@@ -173,6 +173,28 @@ def test_registration_runs_in_the_background_and_loads_its_result(dataset, tmp_p
     assert state.run_oracle_query(state.oracle.names.index("ball"))
 
 
+def test_opening_the_datasets_own_scene_keeps_its_cameras_and_another_says_they_are_dropped(app, registered, dataset, tmp_path):
+    """Round 86d F2: a scene opened from another folder than the scene in view dropped the dataset without a word, the
+    dataset's own scene.ply too (the scene its cameras were made for)."""
+    state = app.state
+    assert app.open_scene(registered) and state.load_source(dataset)
+    cameras = len(state.cameras)
+    checks, app.background_checks = app.background_checks, False  # the cameras read at once
+    try:
+        assert app.open_scene(dataset / "scene.ply")
+    finally:
+        app.background_checks = checks
+    assert len(state.cameras) == cameras and state.source_dir == dataset and state.oracle is not None
+    from drsplat.scene import load_ply, save_ply
+
+    save_ply(load_ply(dataset / "scene.ply").subset(np.arange(50)), tmp_path / "elsewhere.ply")
+    assert app.open_scene(tmp_path / "elsewhere.ply")
+    assert not state.cameras and state.source_dir is None
+    assert any("lies in neither the previous scene's folder nor the dataset's" in m.text for m in state.messages[-3:]), \
+        [m.text for m in state.messages[-3:]]
+    assert app.open_scene(registered) and state.load_source(dataset)  # as the module's other tests expect it
+
+
 def test_a_registration_of_the_scene_in_view_keeps_the_view(app, dataset, tmp_path):
     """Round 61a: a registration from the panel, loaded over the scene in hand, put the camera back at the home view
     (the window rebuilt its view for every new scene): it is the same geometry, so the view stays; another scene

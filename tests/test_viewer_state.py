@@ -62,6 +62,51 @@ def test_export_and_screenshot_never_write_over_what_the_viewer_read(state):
     assert digests(ds) | digests(state.scene_path.parent) == before
 
 
+def test_round_86d_viewer_findings(state, tmp_path):
+    """Round 86d: an empty oracle label list crashed the first screen (IndexError); an export to an existing name the
+    format cannot write asked to be pressed again to replace it, then refused the name; a field of no assigned
+    Gaussian loaded without a word and invited queries that pointed to "the warnings above"; a screenshot could replace
+    the embedding file of the query shown."""
+    from viewer.state import ViewerState, read_oracle_queries
+
+    ds = state.source_dir
+    empty = Path(shutil.copytree(ds, tmp_path / "empty"))
+    (empty / "gt" / "label_names.json").write_text("[]")
+    np.save(empty / "text_embeddings.npy", np.zeros((0, state.field.dim), np.float32))
+    problems: list[str] = []
+    assert read_oracle_queries(empty, problems) is None and "lists no label" in problems[0], problems
+    assert state.load_source(empty) and state.oracle is None and state.next_step().startswith("Next:")
+    # the export's name checked before a replacement is asked for
+    assert state.run_embedding_query(_save_query(tmp_path, state)) is True
+    state.set_threshold(-1.0)
+    (tmp_path / "old.splat").write_bytes(b"x" * 64)
+    assert state.export_selection(tmp_path / "old.splat", "drsplat") is None
+    assert "a drsplat export is a PLY" in state.messages[-1].text and "export again" not in state.messages[-1].text
+    assert (tmp_path / "old.splat").read_bytes() == b"x" * 64
+    # the query's own embedding file is an input
+    query_file = tmp_path / "q.npy"
+    assert not state.guard_output(query_file, "the screenshot") and "embedding file of the query shown" in state.messages[-1].text
+    # a field whose every Gaussian is unassigned
+    none = ViewerState()
+    reg = state.scene_path
+    from drsplat.scene import load_ply, save_ply
+
+    scene = load_ply(reg)
+    extra = {k: (np.zeros_like(v) if k.startswith("lang_") and k != "lang_meta" else v) for k, v in scene.extra.items()}
+    save_ply(dataclasses.replace(scene, extra=extra), tmp_path / "unassigned.ply")
+    assert none.load_scene(tmp_path / "unassigned.ply")
+    assert any(m.level == "warning" and "none of this scene's" in m.text and "warnings above" not in m.text for m in none.messages), \
+        [m.text for m in none.messages]
+    assert none.next_step().startswith("Queries are off: none of this scene's")
+
+
+def _save_query(tmp_path: Path, state) -> Path:
+    """An embedding file of one assigned Gaussian's feature (a query that selects something)."""
+    row = state.field.reconstruct(np.flatnonzero(state.field.assigned())[:1])[0]
+    np.save(tmp_path / "q.npy", row.astype(np.float32))
+    return tmp_path / "q.npy"
+
+
 def test_an_export_over_the_output_of_the_registration_running_is_refused(state, tmp_path):
     """An export to the file a running registration writes was accepted ("exported 78 Gaussians")
     and then replaced when the registration ended (a viewer probe, 2026-11-30)."""

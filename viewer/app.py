@@ -618,15 +618,19 @@ class ViewerApp:
 
     def open_scene(self, path: str | Path) -> bool:
         """Open another PLY (Scene panel, file dialog, drop). The training cameras and oracle
-        labels are kept when it lies in the same folder as the current scene and is that scene, an
-        export or registration of it, or the scene it came from (`derived_from`), else dropped;
+        labels are kept when it lies in the same folder as the current scene or in the dataset's and is
+        that scene, an export or registration of it, or the scene it came from (`derived_from`), else
+        dropped, saying so;
         kept, they are read again for the new scene, whose frame and trainer's camera refinements
         (drsplat.frames) may not be the old one's."""
         if not str(path).strip():  # Path("") is ".", which would then be "not a file"
             self.state.error("type the path of a PLY to open")
             return False
         path = typed_path(str(path).strip())
-        same_folder = self.state.scene_path is not None and path.resolve().parent == self.state.scene_path.resolve().parent
+        source = self.state.source_dir
+        # the dataset's own folder too: its scene.ply is the scene the cameras were made for (round 86d F2: dropped)
+        same_folder = any(folder is not None and path.resolve().parent == Path(folder).resolve()
+                          for folder in (self.state.scene_path.parent if self.state.scene_path is not None else None, source))
         previous = self.state.scene
         if not self.state.load_scene(path):
             return False
@@ -634,6 +638,9 @@ class ViewerApp:
             self.state.info(f"{path.name} is not the previous scene, an export or registration of it, nor the scene it came from: "
                             "its training cameras and oracle labels were dropped (start with --source to give its own)")
             same_folder = False
+        elif not same_folder and source is not None:  # round 86d F2: dropped without a word
+            self.state.info(f"{path.name} lies in neither the previous scene's folder nor the dataset's ({source}): the dataset's "
+                            "training cameras and oracle labels were dropped (start with --source to give its own)")
         if not same_folder:
             self.state.forget_source()
         elif self.state.source_dir is not None and not self.state.load_source(self.state.source_dir, background=self.background_checks):

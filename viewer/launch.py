@@ -275,9 +275,12 @@ def screenshot(args: argparse.Namespace, state) -> int:
             said_empty = True
             log.warning("every Gaussian scores >= %.4f, so --mode hide_selection hides them all: the screenshot shows nothing (an "
                         "empty image); raise --threshold", state.threshold)
-    elif args.threshold is not None or args.mode != "highlight":  # nothing to select or colour by: say so rather than ignore them
-        log.warning("--threshold and --mode %s apply to a query (--query, --embedding or --oracle); the screenshot shows the scene's "
-                    "own colours", args.mode)
+    else:  # nothing to select or colour by: say so rather than ignore them (round 86d F6: flags named that were not given)
+        given = [flag for flag, on in (("--threshold", args.threshold is not None), (f"--mode {args.mode}", args.mode != "highlight"),
+                                       ("--negatives", bool(args.negatives))) if on]
+        if given:
+            log.warning("%s %s to a query (--query, --embedding or --oracle); the screenshot shows the scene's own colours",
+                        " and ".join(given), "applies" if len(given) == 1 else "apply")
     image = render_screenshot(state, camera, args.screenshot)
     mode = args.mode if wants_query else "color"
     if image.size and not image.any() and not said_empty and not centres_in_view(drawn_means(state, mode), camera):  # black background

@@ -30,7 +30,7 @@ from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character, one_line
 from drsplat.features.clip import ClipEncoder, unsupported_model_name, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, clip_weights_problem, is_oracle, named_model
-from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_scene, read_field, written_codebook_path
+from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_problem, export_scene, read_field, written_codebook_path
 from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
@@ -60,6 +60,7 @@ class QueryResult:
     metric: str  # "relevancy" | "cosine"
     picked: np.ndarray | None = None  # Gaussian ids a click query started from
     assigned: np.ndarray | None = None  # [N] bool the Gaussians with a feature (LanguageField.assigned): only they are selected
+    file: Path | None = None  # the embedding file an "embedding" query was read from: an input no output may replace
 
 
 @dataclass
@@ -184,6 +185,8 @@ class ViewerState:
         if lang is None:
             self.encoder_status = "this scene has no language field: register it (Registration panel) to query it"
         self.info(f"loaded {path.name if path else 'scene'}: {counted(scene.num_gaussians, 'Gaussian', 'Gaussians')}, SH degree {scene.sh_degree}" + (f", language field {lang.kind} {lang.dim}-D ({lang.clip_model})" if lang is not None else ""))
+        if lang is not None and not self.assigned_count and len(lang):
+            self.warning(self.unassigned_message())
 
     def load_source(self, source: str | Path, background: bool = False) -> bool:
         """Training cameras of a dataset directory, and its oracle label queries if it has them.
@@ -294,6 +297,8 @@ class ViewerState:
         if self.field is None:
             return ("This scene has no language field yet: open the Registration panel and press 'register' "
                     "(it needs the dataset, --source DIR, and its features). Drag to orbit, F1 lists the keys.")
+        if not self.assigned_count:
+            return f"Queries are off: {self.unassigned_message()}."
         steps = []
         if (oracle := self.usable_oracle) is not None:
             steps.append(f"click a label above (e.g. '{oracle.names[min(3, len(oracle.names) - 1)]}') to highlight it")
@@ -409,6 +414,12 @@ class ViewerState:
             return f"{self.field_problem}; mend what it names (a codebook moved away: put it back) and open the scene again"
         return "this scene has no language field; register it first (the Registration panel, or `drsplat register`)"
 
+    def unassigned_message(self) -> str:
+        """Why a field none of whose Gaussians has a feature cannot be queried (round 86d F4: it pointed to "the warnings
+        above", which a file of all-unassigned rows does not give)."""
+        return (f"none of this scene's {len(self.field):,} Gaussians has a language feature (all unassigned, or their codes do not "
+                "match their codebook); there is nothing to search: register the scene again")
+
     def _require_field(self) -> bool:
         if self.kernels_busy("a query"):
             return False
@@ -419,8 +430,7 @@ class ViewerState:
             self.error(self.no_field_message())
             return False
         if not self.field.assigned().any():  # as `drsplat query` refuses it: no threshold can select anything
-            self.error(f"none of this scene's {len(self.field):,} Gaussians has a language feature (all unassigned, or their codes "
-                       "do not match their codebook: see the warnings above); there is nothing to search")
+            self.error(self.unassigned_message())
             return False
         return True
 
@@ -508,7 +518,7 @@ class ViewerState:
             return self._fail(exc, f"embedding query {path} failed")
         if emb.shape[0] > 1:  # `drsplat query` scores every row; the viewer shows one query, and said nothing of the rest
             self.warning(f"{Path(path).name} holds {emb.shape[0]} embeddings; the viewer queries by the first (row 0) and ignores the rest")
-        self._set_query(QueryResult(Path(path).name, "embedding", scores, metric))
+        self._set_query(QueryResult(Path(path).name, "embedding", scores, metric, file=Path(path)))
         return True
 
     def _first_threshold(self, result: QueryResult) -> float:
@@ -680,6 +690,8 @@ class ViewerState:
         if self.source_dir is not None:
             inputs.update(dataset_inputs(self.source_dir, self.dataset_cameras or self.cameras))
             inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
+        if self.query is not None and self.query.file is not None:  # round 86d F5: a screenshot replaced it, which the CLI refuses
+            inputs["embedding file of the query shown"] = self.query.file
         if self.registration is not None and self.registration.running:  # it replaces them when it ends: an export there would be lost
             # named as phrases ("the ..."), which guard_outputs says as such: "the input output of ..." read wrong (round 60a)
             inputs["the output of the registration running"] = self.registration.output
@@ -756,6 +768,8 @@ class ViewerState:
             inputs, folders = self.read_inputs()
             guard_outputs(inputs, {"the export": path, "the export's codebook": codebook}, folders)
             check_outputs_writable(path, codebook)  # both, before either is written, as the CLI's export checks them (round 60a)
+            if (problem := export_problem(path, fmt)) is not None:  # before a replacement is asked for that cannot happen (round 86d F3)
+                raise ValueError(problem)
             if not self._replace_confirmed(path, codebook, fmt):
                 return None
             with fifo_reader(path, wait=False):  # the window's thread: a FIFO nobody reads is refused, not waited on
@@ -906,6 +920,8 @@ def read_oracle_queries(source: Path, problems: list[str] | None = None) -> Orac
         return _no_oracle(problems, f"ignoring oracle queries of {source}: {exc}")
     if emb.ndim != 2 or emb.shape[0] != len(names):
         return _no_oracle(problems, f"ignoring oracle queries of {source}: {len(names)} names but embeddings of shape {emb.shape}")
+    if not names:  # round 86d F1: zero labels passed, and the first screen's example label raised IndexError
+        return _no_oracle(problems, f"ignoring oracle queries of {source}: {names_path.name} lists no label")
     return OracleQueries([str(n) for n in names], emb.astype(np.float32))
 
 
