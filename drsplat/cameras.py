@@ -726,7 +726,7 @@ class DatasetPaths:
     source: Path
     warned: bool = False
     listings: dict = dataclasses.field(default_factory=dict)  # folder -> its entries case-folded, or None: unknown (`may_hold`)
-    suffixed: dict = dataclasses.field(default_factory=dict)  # folder -> {name without its image suffix: the entry}, `suffixed_in_any_case`
+    suffixed: dict = dataclasses.field(default_factory=dict)  # folder -> {name without its image suffix: its entries}, `suffixed_in_any_case`
 
     def image(self, name: str) -> Path:
         target = self.root / name  # an absolute name replaces root, as the file asked
@@ -778,14 +778,14 @@ class DatasetPaths:
                 entries = sorted(os.listdir(folder))
             except (OSError, ValueError):
                 entries = []
-            table: dict[str, str] = {}
+            table: dict[str, list[str]] = {}
             for entry in entries:
                 base, dot, suffix = entry.rpartition(".")
                 if dot and f".{suffix}".lower() in IMAGE_SUFFIXES_LOWER:
-                    table.setdefault(base, entry)
+                    table.setdefault(base, []).append(entry)
             self.suffixed[folder] = table
-        entry = self.suffixed[folder].get(path.name)
-        return folder / entry if entry is not None and (folder / entry).is_file() else None
+        # the first that is a file: a folder or a dangling link of that name hid the image after it (round 87a F2)
+        return next((folder / e for e in self.suffixed[folder].get(path.name, ()) if (folder / e).is_file()), None)
 
     def may_hold(self, name: str) -> bool:
         """False when the folder of the image `name` names lists no entry of that name, with or without an
@@ -1590,7 +1590,12 @@ def _missing_hint(kind: str, found: Path, missing: str) -> str:
         return hint + f"; the folder {wanted.parent} does not exist" + _downscaled_folders_hint(wanted.parent)
     if os.path.lexists(wanted):
         return hint + "; it is there but is not a regular file (a folder, a broken link or a pipe?)"
-    spelled = [entry for entry in sorted(os.listdir(wanted.parent)) if entry != wanted.name and _same_spelling(entry, wanted.name)]
+    try:
+        listed = sorted(os.listdir(wanted.parent))
+    except OSError:  # an unreadable folder: no hint from its names
+        listed = []
+    # files only: a folder or a dangling link of an alike name was called an accent's encoding (round 87a F3)
+    spelled = [entry for entry in listed if entry != wanted.name and _same_spelling(entry, wanted.name) and (wanted.parent / entry).is_file()]
     if spelled:  # round 85d F3: a name differing in case, or in Unicode's composed and decomposed accents (a zip made on macOS)
         return hint + f"; {spelled[0]!r} in that folder differs from the name the cameras give only {_spelling_difference(spelled[0], wanted.name)}: " \
             "rename one to match the other"

@@ -42,7 +42,7 @@ file can hold tensors and plain values but no code): gsplat's simple_trainer sav
 {"step", "splats": {means, scales, quats, opacities, sh0 [N, 1, 3], shN [N, K-1, 3]}} (or colors
 [N, 3] and features for its appearance model) and writes no PLY unless `save_ply` is on;
 nerfstudio's splatfacto saves {"pipeline": {"_model.gauss_params.means", ... features_dc [N, 3],
-features_rest [N, K-1, 3], opacities [N, 1]}}. Both store log scales, (w, x, y, z) quaternions and
+features_rest [N, K-1, 3], opacities [N, 1]}} ("_model.means", ... before nerfstudio 1.1, which it still loads). Both store log scales, (w, x, y, z) quaternions and
 opacity logits, as PLY does, in the frame they trained in (`drsplat.frames`). A gsplat run with
 `pose_opt` also saves its camera refinements ({"pose_adjust": {"embeds.weight" [T, 9]}}), read into
 the load report (`LoadReport.camera_refinements`), which drsplat.frames applies to the training cameras.
@@ -228,6 +228,8 @@ NERFSTUDIO_PREFIX = "_model.gauss_params."
 CHECKPOINT_LAYOUTS = {  # layout -> (where the Gaussians are, its field names for means, scales, quats, opacities, DC, rest of the SH)
     "gsplat checkpoint": ("splats", ("means", "scales", "quats", "opacities", "sh0", "shN")),
     "nerfstudio checkpoint": ("pipeline", tuple(NERFSTUDIO_PREFIX + k for k in ("means", "scales", "quats", "opacities", "features_dc", "features_rest"))),
+    # splatfacto before its gauss_params ParameterDict (nerfstudio 1.0), whose checkpoints nerfstudio still loads (round 87a F4)
+    "nerfstudio checkpoint (1.0 layout)": ("pipeline", tuple("_model." + k for k in ("means", "scales", "quats", "opacities", "features_dc", "features_rest"))),
 }
 
 
@@ -416,11 +418,12 @@ def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
         for name, (group, fields) in CHECKPOINT_LAYOUTS.items():  # the group there without its means (round 85b F9: "holds neither ... 'splats'")
             if not isinstance(data.get(group), dict):
                 continue
-            held = ", ".join(sorted(map(str, data[group]))[:8]) or "nothing"
-            if group == "pipeline" and not any(str(key).startswith(NERFSTUDIO_PREFIX) for key in data[group]):
+            keys = sorted(map(str, data[group]))
+            held = (", ".join(keys[:8]) + (", ..." if len(keys) > 8 else "")) or "nothing"
+            if group == "pipeline" and not any(k.startswith(NERFSTUDIO_PREFIX) or k.startswith("_model.") and k.endswith("features_dc") for k in keys):
                 # a NeRF's checkpoint (nerfacto): no Gaussians at all, not a damaged splat file (round 86c F4)
                 raise InputError(path, f"is a nerfstudio checkpoint of a model without Gaussians (its 'pipeline' holds no "
-                                       f"'{NERFSTUDIO_PREFIX}*': {held}, ...): a NeRF such as nerfacto, not splatfacto")
+                                       f"'{NERFSTUDIO_PREFIX}*': {held}): a NeRF such as nerfacto, not splatfacto")
             raise InputError(path, f"is a {name} whose '{group}' has no '{fields[0]}' (it holds {held})", field=f"{group}.{fields[0]}")
         raise InputError(path, f"holds neither a gsplat checkpoint's 'splats' nor a nerfstudio one's 'pipeline' with "
                                f"'{NERFSTUDIO_PREFIX}means' (its entries: {', '.join(sorted(map(str, data))[:8]) or 'none'})")

@@ -42,8 +42,16 @@ def nerfstudio_checkpoint(scene: GaussianScene) -> dict:
     return {"step": 29999, "pipeline": pipeline, "optimizers": {}, "scalers": {}}
 
 
+def nerfstudio_1_0_checkpoint(scene: GaussianScene) -> dict:
+    """Splatfacto before its gauss_params (nerfstudio 1.0): the Gaussians as _model.means, ... (round 87a F4: called a NeRF)."""
+    ckpt = nerfstudio_checkpoint(scene)
+    ckpt["pipeline"] = {k.replace("_model.gauss_params.", "_model."): v for k, v in ckpt["pipeline"].items()}
+    return ckpt
+
+
 @pytest.mark.parametrize("make, name, layout", [(gsplat_checkpoint, "ckpt_29999_rank0.pt", "gsplat checkpoint"),
-                                                (nerfstudio_checkpoint, "step-000029999.ckpt", "nerfstudio checkpoint")])
+                                                (nerfstudio_checkpoint, "step-000029999.ckpt", "nerfstudio checkpoint"),
+                                                (nerfstudio_1_0_checkpoint, "step-000029999.ckpt", "nerfstudio checkpoint (1.0 layout)")])
 @pytest.mark.parametrize("degree", [0, 3])
 def test_a_trainer_checkpoint_reads_as_the_scene_it_holds(tmp_path, make, name, layout, degree):
     """Every attribute comes back bit for bit, and the scene writes the same PLY bytes as the scene
@@ -130,7 +138,8 @@ def _bad(case: str, tmp_path):
     ("integer", r"field 'opacities': is a Tensor of torch.int64, not a floating-point tensor"),
     ("other", "holds neither a gsplat checkpoint's 'splats' nor a nerfstudio one's"),
     ("no means", r"field 'splats.means': is a gsplat checkpoint whose 'splats' has no 'means' \(it holds opacities, quats, scales, sh0, shN\)"),
-    ("nerfacto", r"is a nerfstudio checkpoint of a model without Gaussians .*a NeRF such as nerfacto, not splatfacto"),
+    ("nerfacto", r"is a nerfstudio checkpoint of a model without Gaussians \(its 'pipeline' holds no '_model.gauss_params.\*': "
+                 r"_model.field.mlp_base.params\): a NeRF such as nerfacto, not splatfacto"),
 ])
 def test_a_bad_checkpoint_is_one_error_naming_the_file_and_field(tmp_path, case, words):
     path = _bad(case, tmp_path)

@@ -730,6 +730,17 @@ def test_pq_train_over_a_registrations_codebook_warns_before_training(tmp_path, 
     code, err = run_cli(["pq", "train", "--embeddings", rows, "--m", "8", "--out", out], capsys)
     assert code == 0 and "--out " in err and "replaces the codebook that registration writes for" in err and "scene.ply beside it" in err, err
     assert err.index("replaces the codebook") < err.index("training PQ"), err
+    # round 87a F1: a FIFO of that stem blocked the check's open (a pipe waits for a writer)
+    import threading
+
+    from drsplat.commands.pq import warn_if_a_registrations_codebook
+
+    os.mkfifo(tmp_path / "piped.ply")
+    (tmp_path / "piped.codebook.faiss").write_bytes(out.read_bytes())
+    check = threading.Thread(target=warn_if_a_registrations_codebook, args=(tmp_path / "piped.codebook.faiss",), daemon=True)
+    check.start()
+    check.join(60)
+    assert not check.is_alive(), "the check opened the FIFO and waits for a writer"
     # round 86a F1: `register --out Room.PLY` (or no suffix) writes Room.codebook.faiss too, and a link there was missed
     (tmp_path / "scene.ply").rename(tmp_path / "scene.PLY")
     (tmp_path / "link.faiss").symlink_to(out)

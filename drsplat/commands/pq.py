@@ -178,9 +178,11 @@ def warn_if_a_registrations_codebook(out: Path) -> None:
 def _is_ply(path: Path) -> bool:
     """Whether `path` is a regular file that begins as a PLY does ('ply' and a line end): a registration's output, not
     the embeddings or notes of the same stem (round 86c F3: `--embeddings crops.npy --out crops.codebook.faiss` warned)."""
+    if not path.is_file():  # before opening: a FIFO of that name would block the open (round 87a F1)
+        return False
     try:
         with open(path, "rb") as f:
-            return path.is_file() and f.read(4) in (b"ply\n", b"ply\r")
+            return f.read(4) in (b"ply\n", b"ply\r")
     except OSError:
         return False
 
