@@ -229,7 +229,7 @@ CHECKPOINT_LAYOUTS = {  # layout -> (where the Gaussians are, its field names fo
     "gsplat checkpoint": ("splats", ("means", "scales", "quats", "opacities", "sh0", "shN")),
     "nerfstudio checkpoint": ("pipeline", tuple(NERFSTUDIO_PREFIX + k for k in ("means", "scales", "quats", "opacities", "features_dc", "features_rest"))),
     # splatfacto before its gauss_params ParameterDict (nerfstudio 1.0), whose checkpoints nerfstudio still loads (round 87a F4)
-    "nerfstudio checkpoint (1.0 layout)": ("pipeline", tuple("_model." + k for k in ("means", "scales", "quats", "opacities", "features_dc", "features_rest"))),
+    "nerfstudio 1.0 checkpoint": ("pipeline", tuple("_model." + k for k in ("means", "scales", "quats", "opacities", "features_dc", "features_rest"))),
 }
 
 
@@ -418,6 +418,9 @@ def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
         for name, (group, fields) in CHECKPOINT_LAYOUTS.items():  # the group there without its means (round 85b F9: "holds neither ... 'splats'")
             if not isinstance(data.get(group), dict):
                 continue
+            if name == "nerfstudio checkpoint" and not any(str(k).startswith(NERFSTUDIO_PREFIX) for k in data[group]) and \
+                    any(str(k).startswith("_model.") and str(k).endswith("features_dc") for k in data[group]):
+                continue  # a 1.0 layout's missing means is named as that layout's (round 87b F7)
             keys = sorted(map(str, data[group]))
             held = (", ".join(keys[:8]) + (", ..." if len(keys) > 8 else "")) or "nothing"
             if group == "pipeline" and not any(k.startswith(NERFSTUDIO_PREFIX) or k.startswith("_model.") and k.endswith("features_dc") for k in keys):
@@ -451,6 +454,13 @@ def _checkpoint_file_columns(path: Path) -> tuple[dict, list[str], str]:
     if "colors" in read:
         with np.errstate(over="ignore"):  # a colour logit below -709: its sigmoid is 0, as it should be
             sh = dc_from_rgb(1.0 / (1.0 + np.exp(-read["colors"].astype(np.float64))))[:, None, :].astype(np.float32)
+    elif not gsplat and read[k_rest].shape[1] == 0:
+        # splatfacto at SH degree 0 keeps a colour logit in features_dc and draws sigmoid of it (its `colors`, what ns-export
+        # writes), not SH: read as SH, (0.9, 0.1, 0.1) showed as (1.12, -0.12, -0.12) (round 87b F6)
+        with np.errstate(over="ignore"):
+            sh = dc_from_rgb(1.0 / (1.0 + np.exp(-read[k_dc][:, 0].astype(np.float64))))[:, None, :].astype(np.float32)
+        log.info("%s: a splatfacto checkpoint of SH degree 0: its features_dc are colour logits (nerfstudio draws their sigmoid), "
+                 "read as such", path)
     else:
         sh = np.concatenate([read[k_dc], read[k_rest]], axis=1)
     cols = {"means": read[k_means], "log_scales": read[k_scales], "quats": read[k_quats], "opacity_logits": read[k_opacities].reshape(-1),

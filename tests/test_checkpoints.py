@@ -3,6 +3,8 @@ and nerfstudio's splatfacto `.ckpt`, read with torch.load's weights_only."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import pickle
 import re
@@ -51,7 +53,7 @@ def nerfstudio_1_0_checkpoint(scene: GaussianScene) -> dict:
 
 @pytest.mark.parametrize("make, name, layout", [(gsplat_checkpoint, "ckpt_29999_rank0.pt", "gsplat checkpoint"),
                                                 (nerfstudio_checkpoint, "step-000029999.ckpt", "nerfstudio checkpoint"),
-                                                (nerfstudio_1_0_checkpoint, "step-000029999.ckpt", "nerfstudio checkpoint (1.0 layout)")])
+                                                (nerfstudio_1_0_checkpoint, "step-000029999.ckpt", "nerfstudio 1.0 checkpoint")])
 @pytest.mark.parametrize("degree", [0, 3])
 def test_a_trainer_checkpoint_reads_as_the_scene_it_holds(tmp_path, make, name, layout, degree):
     """Every attribute comes back bit for bit, and the scene writes the same PLY bytes as the scene
@@ -60,6 +62,13 @@ def test_a_trainer_checkpoint_reads_as_the_scene_it_holds(tmp_path, make, name, 
     torch.save(make(scene), tmp_path / name)
     loaded, report = load_scene_report(tmp_path / name)
     assert report.layout == layout and report.sh_degree == degree
+    if degree == 0 and layout != "gsplat checkpoint":
+        # round 87b F6: splatfacto at SH degree 0 keeps colour logits (nerfstudio draws their sigmoid), not SH
+        from drsplat.scene import dc_from_rgb
+
+        want = dc_from_rgb(1.0 / (1.0 + np.exp(-scene.sh[:, 0].astype(np.float64))))[:, None, :].astype(np.float32)
+        np.testing.assert_array_equal(loaded.sh, want)
+        scene = dataclasses.replace(scene, sh=want)
     for field in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         assert np.array_equal(getattr(loaded, field), getattr(scene, field)), field
     save_ply(scene, tmp_path / "a.ply")
@@ -122,6 +131,9 @@ def _bad(case: str, tmp_path):
         ckpt = {"state_dict": {"weight": torch.zeros(3)}}
     elif case == "no means":  # round 85b F9: told it held no 'splats', its entries then listing splats
         del s["means"]
+    elif case == "1.0 no means":  # round 87b F7: named the other layout's key
+        ckpt = {"pipeline": {k.replace("_model.gauss_params.", "_model."): v for k, v in nerfstudio_checkpoint(scene)["pipeline"].items()
+                             if not k.endswith("means")}}
     elif case == "nerfacto":  # round 86c F4: a NeRF's checkpoint was told it lacked its Gaussians' means, as if damaged
         ckpt = {"pipeline": {"_model.field.mlp_base.params": torch.zeros(3)}, "step": 1}
     path = tmp_path / f"{case}.pt"
@@ -138,6 +150,7 @@ def _bad(case: str, tmp_path):
     ("integer", r"field 'opacities': is a Tensor of torch.int64, not a floating-point tensor"),
     ("other", "holds neither a gsplat checkpoint's 'splats' nor a nerfstudio one's"),
     ("no means", r"field 'splats.means': is a gsplat checkpoint whose 'splats' has no 'means' \(it holds opacities, quats, scales, sh0, shN\)"),
+    ("1.0 no means", r"field 'pipeline._model.means': is a nerfstudio 1.0 checkpoint whose 'pipeline' has no '_model.means'"),
     ("nerfacto", r"is a nerfstudio checkpoint of a model without Gaussians \(its 'pipeline' holds no '_model.gauss_params.\*': "
                  r"_model.field.mlp_base.params\): a NeRF such as nerfacto, not splatfacto"),
 ])

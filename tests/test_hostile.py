@@ -368,11 +368,23 @@ def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_i
                         "--threshold", "0.5"])
     err = capsys.readouterr().err
     assert code == 0 and "--threshold applies to a query" in err and "--mode" not in err, err
+    # round 87b F4, F7: --negatives without a query loaded CLIP (a missing --clip-checkpoint then failed the picture); three
+    # flags read "X and Y and Z"
+    code = viewer_main([str(demo / "registered.ply"), "--screenshot", str(tmp_path / "n.png"), "--width", "32", "--height", "32",
+                        "--threshold", "0.5", "--mode", "selection", "--negatives", "stuff", "--clip-checkpoint", str(tmp_path / "missing.pt")])
+    err = capsys.readouterr().err
+    assert code == 0 and "--threshold, --mode selection and --negatives apply to a query" in err, err
     # round 53: with --mode segmentation (the demo's oracle labels) --threshold was dropped without a word
     code = viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--screenshot", str(tmp_path / "g.png"), "--width", "32",
                         "--height", "32", "--threshold", "0.2", "--mode", "segmentation"])
     err = capsys.readouterr().err
     assert code == 0 and "--threshold applies to a query's selection, not to --mode segmentation" in err, err
+    # round 87b F5: the query flags with --mode segmentation gave the same picture, not a word
+    names = json.loads((demo / "gt" / "label_names.json").read_text())
+    code = viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--screenshot", str(tmp_path / "o.png"), "--width", "32",
+                        "--height", "32", "--oracle", names[0], "--mode", "segmentation"])
+    err = capsys.readouterr().err
+    assert code == 0 and "--oracle applies to a query's selection, not to --mode segmentation" in err, err
     # round 54: --features and --clip-checkpoint, which a screenshot without a text query never reads, were taken without a word
     code = viewer_main([str(demo / "registered.ply"), "--screenshot", str(tmp_path / "f.png"), "--width", "32", "--height", "32",
                         "--features", str(tmp_path / "nowhere"), "--clip-checkpoint", str(tmp_path / "w.bin")])

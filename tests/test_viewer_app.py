@@ -182,9 +182,14 @@ def test_opening_the_datasets_own_scene_keeps_its_cameras_and_another_says_they_
     checks, app.background_checks = app.background_checks, False  # the cameras read at once
     try:
         assert app.open_scene(dataset / "scene.ply")
+        assert len(state.cameras) == cameras and state.source_dir == dataset and state.oracle is not None
+        assert app.open_scene(registered), "round 87b F3: the registered scene given with --source, reopened"
     finally:
         app.background_checks = checks
     assert len(state.cameras) == cameras and state.source_dir == dataset and state.oracle is not None
+    (tmp_path / "loop.ply").symlink_to(tmp_path / "loop.ply")
+    assert not app.open_scene(tmp_path / "loop.ply"), "round 87b F1: a link loop raised out of the frame loop"
+    assert "loop of symbolic links" in state.messages[-1].text
     from drsplat.scene import load_ply, save_ply
 
     save_ply(load_ply(dataset / "scene.ply").subset(np.arange(50)), tmp_path / "elsewhere.ply")
@@ -192,6 +197,10 @@ def test_opening_the_datasets_own_scene_keeps_its_cameras_and_another_says_they_
     assert not state.cameras and state.source_dir is None
     assert any("lies in neither the previous scene's folder nor the dataset's" in m.text for m in state.messages[-3:]), \
         [m.text for m in state.messages[-3:]]
+    save_ply(load_ply(dataset / "scene.ply").subset(np.arange(40)), tmp_path / "beside.ply")
+    said = len(state.messages)
+    assert app.open_scene(tmp_path / "beside.ply")  # round 87b F2: no dataset, so none dropped: not said
+    assert not any("dropped" in m.text for m in state.messages[said:]), [m.text for m in state.messages[said:]]
     assert app.open_scene(registered) and state.load_source(dataset)  # as the module's other tests expect it
 
 

@@ -34,7 +34,7 @@ from viewer.paths import default_layout_path, image_format, typed_path
 from viewer.renderer import (GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, fit_within, max_image_side, preload_torch,
                              render_offscreen)
 from viewer.settings import FLY_SPEED_RANGE, RENDER_SCALE_RANGE
-from viewer.state import CAMERAS_BEING_CHECKED, ViewerState
+from viewer.state import CAMERAS_BEING_CHECKED, ViewerState, resolved_folder
 
 log = logging.getLogger(__name__)
 
@@ -628,15 +628,19 @@ class ViewerApp:
             return False
         path = typed_path(str(path).strip())
         source = self.state.source_dir
-        # the dataset's own folder too: its scene.ply is the scene the cameras were made for (round 86d F2: dropped)
-        same_folder = any(folder is not None and path.resolve().parent == Path(folder).resolve()
-                          for folder in (self.state.scene_path.parent if self.state.scene_path is not None else None, source))
+        # the dataset's own folder and those of the scenes shown with it: its scene.ply is the scene the cameras were made for,
+        # and the registered scene beside which it was given may be reopened (round 86d F2, 87b F3: dropped)
+        folders = {resolved_folder(self.state.scene_path)} if self.state.scene_path is not None else set()
+        if source is not None:
+            folders |= {resolved_folder(Path(source) / "scene.ply"), *self.state.dataset_scene_folders}
+        same_folder = resolved_folder(path) in folders  # no resolve() of a link loop here: load_scene names it (round 87b F1)
         previous = self.state.scene
         if not self.state.load_scene(path):
             return False
         if same_folder and previous is not None and not (derived_from(self.state.scene.means, previous.means) or derived_from(previous.means, self.state.scene.means)):
-            self.state.info(f"{path.name} is not the previous scene, an export or registration of it, nor the scene it came from: "
-                            "its training cameras and oracle labels were dropped (start with --source to give its own)")
+            if source is not None:  # round 87b F2: said with no dataset to drop
+                self.state.info(f"{path.name} is not the previous scene, an export or registration of it, nor the scene it came from: "
+                                "its training cameras and oracle labels were dropped (start with --source to give its own)")
             same_folder = False
         elif not same_folder and source is not None:  # round 86d F2: dropped without a word
             self.state.info(f"{path.name} lies in neither the previous scene's folder nor the dataset's ({source}): the dataset's "

@@ -146,7 +146,7 @@ def build_state(args: argparse.Namespace, background_checks: bool = False):
     window opens at once; a screenshot needs them done."""
 
 
-    if args.screenshot is None or args.query or args.negatives:  # read: checked now (a screenshot that reads no text warns instead)
+    if args.screenshot is None or args.query or negatives_used(args):  # read: checked now (a screenshot that reads no text warns instead)
         check_clip_flags(args)
     state = ViewerState()
     state.clip_checkpoint = args.clip_checkpoint
@@ -197,12 +197,23 @@ def warn_unused_window_flags(args: argparse.Namespace) -> None:
         log.warning("%s applies to --screenshot; the window opens without it (set it in the window's panels)", flag)
 
 
+def negatives_used(args: argparse.Namespace) -> bool:
+    """Whether a screenshot scores by --negatives: a query's relevancy needs them; with no query, or --mode segmentation (each
+    Gaussian its best label), they are warned of and neither checked nor encoded (round 87b F4: CLIP was loaded for them)."""
+    return bool(args.negatives) and bool(args.query or args.embedding or args.oracle) and args.mode != "segmentation"
+
+
+def and_list(items: list[str]) -> str:
+    """'a', 'a and b', 'a, b and c'."""
+    return items[0] if len(items) == 1 else f"{', '.join(items[:-1])} and {items[-1]}"
+
+
 def warn_unused_screenshot_flags(args: argparse.Namespace) -> None:
     """One warning per flag a screenshot does not use (round 54: they were taken without a word): --features (a
     screenshot registers nothing), --clip-checkpoint and --clip-config without a text query or negatives."""
     if args.features is not None:
         log.warning("--features applies to registering from the viewer window; a screenshot registers nothing, so it is not read")
-    if not (args.query or args.negatives):
+    if not (args.query or negatives_used(args)):
         for flag, value in (("--clip-checkpoint", args.clip_checkpoint), ("--clip-config", args.clip_config)):
             if value is not None:
                 log.warning("%s applies to a text query (--query or --negatives); this screenshot encodes no text, so it is not read", flag)
@@ -233,7 +244,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
                            "phrases are segmented in the viewer window, or by drsplat segment --labels")
     wants_query = bool(args.query or args.embedding or args.oracle)
     said_empty = False  # a warning above already says the picture is empty
-    if args.query or args.negatives:
+    if args.query or negatives_used(args):
         state.start_text_encoder(background=False)
     ok = True
     if args.query:
@@ -259,9 +270,12 @@ def screenshot(args: argparse.Namespace, state) -> int:
                                "gt/label_names.json and text_embeddings.npy (labels typed as phrases are segmented in the viewer window)")
         if not state.run_segmentation(None):
             raise StartupError(state.messages[-1].text)
-        if args.threshold is not None:  # every Gaussian takes its best label: there is nothing to threshold
-            log.warning("--threshold applies to a query's selection, not to --mode segmentation (each Gaussian is coloured by its "
-                        "best label); it is ignored")
+        unused = [flag for flag, on in (("--threshold", args.threshold is not None), ("--query", bool(args.query)),
+                                        ("--embedding", args.embedding is not None), ("--oracle", args.oracle is not None),
+                                        ("--negatives", bool(args.negatives))) if on]
+        if unused:  # every Gaussian takes its best label: nothing to threshold or query (round 87b F5: the query flags were not said)
+            log.warning("%s %s to a query's selection, not to --mode segmentation (each Gaussian is coloured by its best label); "
+                        "%s", and_list(unused), "applies" if len(unused) == 1 else "apply", "it is ignored" if len(unused) == 1 else "they are ignored")
     elif wants_query:
         if args.threshold is not None:
             state.set_threshold(args.threshold)
@@ -280,7 +294,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
                                        ("--negatives", bool(args.negatives))) if on]
         if given:
             log.warning("%s %s to a query (--query, --embedding or --oracle); the screenshot shows the scene's own colours",
-                        " and ".join(given), "applies" if len(given) == 1 else "apply")
+                        and_list(given), "applies" if len(given) == 1 else "apply")
     image = render_screenshot(state, camera, args.screenshot)
     mode = args.mode if wants_query else "color"
     if image.size and not image.any() and not said_empty and not centres_in_view(drawn_means(state, mode), camera):  # black background

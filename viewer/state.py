@@ -84,6 +84,7 @@ class ViewerState:
         self.cameras: list[Camera] = []
         self.near_plane = NEAR  # registration's, decided with the cameras (`checked_cameras`)
         self.source_dir: Path | None = None
+        self.dataset_scene_folders: set[Path] = set()  # folders of the scenes shown with this dataset: its scenes may be reopened there
         self.features_dir: Path | None = None
         self.clip_checkpoint: Path | None = None
         self.clip_config: Path | None = None  # an open_clip model config for an architecture it does not ship
@@ -222,7 +223,11 @@ class ViewerState:
             except Exception as exc:  # noqa: BLE001 - the cameras and dataset in use stay as they were
                 return self._fail(exc, f"cannot read cameras from {source}")
         self.dataset_cameras, self.camera_problem = read, None
+        if source != self.source_dir:
+            self.dataset_scene_folders = set()
         self.source_dir = source
+        if self.scene_path is not None:
+            self.dataset_scene_folders.add(resolved_folder(self.scene_path))
         if self.features_dir is None and (source / "features").is_dir():
             self.features_dir = source / "features"
         problems: list[str] = []
@@ -245,6 +250,7 @@ class ViewerState:
         """No dataset: no training cameras (nor a check of them), oracle labels or guarded dataset files."""
         self.drop_camera_check()
         self.cameras, self.dataset_cameras, self.camera_problem, self.oracle, self.source_dir = [], [], None, None, None
+        self.dataset_scene_folders = set()
         self.near_plane = NEAR
 
     def drop_camera_check(self) -> None:
@@ -923,6 +929,14 @@ def read_oracle_queries(source: Path, problems: list[str] | None = None) -> Orac
     if not names:  # round 86d F1: zero labels passed, and the first screen's example label raised IndexError
         return _no_oracle(problems, f"ignoring oracle queries of {source}: {names_path.name} lists no label")
     return OracleQueries([str(n) for n in names], emb.astype(np.float32))
+
+
+def resolved_folder(path: Path) -> Path:
+    """The folder of `path`, links resolved where they can be (a link loop or an unreadable part: as written, made absolute)."""
+    try:
+        return Path(path).resolve().parent
+    except (OSError, RuntimeError):
+        return Path(os.path.abspath(path)).parent
 
 
 def _no_oracle(problems: list[str] | None, text: str) -> None:
