@@ -42,7 +42,9 @@ file can hold tensors and plain values but no code): gsplat's simple_trainer sav
 {"step", "splats": {means, scales, quats, opacities, sh0 [N, 1, 3], shN [N, K-1, 3]}} (or colors
 [N, 3] and features for its appearance model) and writes no PLY unless `save_ply` is on;
 nerfstudio's splatfacto saves {"pipeline": {"_model.gauss_params.means", ... features_dc [N, 3],
-features_rest [N, K-1, 3], opacities [N, 1]}} ("_model.means", ... before nerfstudio 1.1, which it still loads). Both store log scales, (w, x, y, z) quaternions and
+features_rest [N, K-1, 3], opacities [N, 1]}} ("_model.means", ... before nerfstudio 1.1, which it still loads); a
+splatfacto run of SH degree 0 (no features_rest coefficients) keeps colour logits in features_dc and draws their sigmoid,
+and is read so. Both store log scales, (w, x, y, z) quaternions and
 opacity logits, as PLY does, in the frame they trained in (`drsplat.frames`). A gsplat run with
 `pose_opt` also saves its camera refinements ({"pose_adjust": {"embeds.weight" [T, 9]}}), read into
 the load report (`LoadReport.camera_refinements`), which drsplat.frames applies to the training cameras.

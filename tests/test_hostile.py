@@ -385,6 +385,15 @@ def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_i
                         "--height", "32", "--oracle", names[0], "--mode", "segmentation"])
     err = capsys.readouterr().err
     assert code == 0 and "--oracle applies to a query's selection, not to --mode segmentation" in err, err
+    # round 88a F1: the query still ran there: a text query without CLIP, or a missing --embedding file, failed the picture
+    code = viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--screenshot", str(tmp_path / "q.png"), "--width", "32",
+                        "--height", "32", "--query", "chair", "--mode", "segmentation", "--clip-checkpoint", str(tmp_path / "missing.pt")])
+    err = capsys.readouterr().err
+    assert code == 0 and "--query applies to a query's selection, not to --mode segmentation" in err, err
+    code = viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--screenshot", str(tmp_path / "e.png"), "--width", "32",
+                        "--height", "32", "--embedding", str(tmp_path / "nope.npy"), "--mode", "segmentation"])
+    err = capsys.readouterr().err
+    assert code == 0 and "--embedding applies to a query's selection" in err, err
     # round 54: --features and --clip-checkpoint, which a screenshot without a text query never reads, were taken without a word
     code = viewer_main([str(demo / "registered.ply"), "--screenshot", str(tmp_path / "f.png"), "--width", "32", "--height", "32",
                         "--features", str(tmp_path / "nowhere"), "--clip-checkpoint", str(tmp_path / "w.bin")])

@@ -146,7 +146,7 @@ def build_state(args: argparse.Namespace, background_checks: bool = False):
     window opens at once; a screenshot needs them done."""
 
 
-    if args.screenshot is None or args.query or negatives_used(args):  # read: checked now (a screenshot that reads no text warns instead)
+    if args.screenshot is None or text_used(args) or negatives_used(args):  # read: checked now (a screenshot that reads no text warns instead)
         check_clip_flags(args)
     state = ViewerState()
     state.clip_checkpoint = args.clip_checkpoint
@@ -197,6 +197,12 @@ def warn_unused_window_flags(args: argparse.Namespace) -> None:
         log.warning("%s applies to --screenshot; the window opens without it (set it in the window's panels)", flag)
 
 
+def text_used(args: argparse.Namespace) -> bool:
+    """Whether a screenshot encodes --query: not under --mode segmentation, which colours by the labels and runs no query
+    (round 88a F1: the query ran there, and a text query without CLIP, or a missing --embedding file, failed the picture)."""
+    return bool(args.query) and args.mode != "segmentation"
+
+
 def negatives_used(args: argparse.Namespace) -> bool:
     """Whether a screenshot scores by --negatives: a query's relevancy needs them; with no query, or --mode segmentation (each
     Gaussian its best label), they are warned of and neither checked nor encoded (round 87b F4: CLIP was loaded for them)."""
@@ -213,7 +219,7 @@ def warn_unused_screenshot_flags(args: argparse.Namespace) -> None:
     screenshot registers nothing), --clip-checkpoint and --clip-config without a text query or negatives."""
     if args.features is not None:
         log.warning("--features applies to registering from the viewer window; a screenshot registers nothing, so it is not read")
-    if not (args.query or negatives_used(args)):
+    if not (text_used(args) or negatives_used(args)):
         for flag, value in (("--clip-checkpoint", args.clip_checkpoint), ("--clip-config", args.clip_config)):
             if value is not None:
                 log.warning("%s applies to a text query (--query or --negatives); this screenshot encodes no text, so it is not read", flag)
@@ -242,12 +248,15 @@ def screenshot(args: argparse.Namespace, state) -> int:
         # before any query is run (round 62b: the text query ran first), with the command line's remedy
         raise DrsplatError(f"--mode segmentation: {problem.replace(' (type text queries or labels instead)', '')}; labels typed as "
                            "phrases are segmented in the viewer window, or by drsplat segment --labels")
-    wants_query = bool(args.query or args.embedding or args.oracle)
+    segmenting = args.mode == "segmentation"  # it colours by the labels: a query given beside it is said unused, not run
+    wants_query = not segmenting and bool(args.query or args.embedding or args.oracle)
     said_empty = False  # a warning above already says the picture is empty
-    if args.query or negatives_used(args):
+    if text_used(args) or negatives_used(args):
         state.start_text_encoder(background=False)
     ok = True
-    if args.query:
+    if segmenting:
+        pass
+    elif args.query:
         ok = state.run_text_query(args.query)
     elif args.embedding:
         ok = state.run_embedding_query(args.embedding)
@@ -296,7 +305,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
             log.warning("%s %s to a query (--query, --embedding or --oracle); the screenshot shows the scene's own colours",
                         and_list(given), "applies" if len(given) == 1 else "apply")
     image = render_screenshot(state, camera, args.screenshot)
-    mode = args.mode if wants_query else "color"
+    mode = args.mode if wants_query or segmenting else "color"
     if image.size and not image.any() and not said_empty and not centres_in_view(drawn_means(state, mode), camera):  # black background
         log.warning("the screenshot is all background (black): %s", nothing_drawn_reason(mode, centres_in_view(state.scene.means, camera)))
     log.info("wrote %s (%dx%d)", shown_path(args.screenshot), camera.width, camera.height)

@@ -935,7 +935,7 @@ def resolved_folder(path: Path) -> Path:
     """The folder of `path`, links resolved where they can be (a link loop or an unreadable part: as written, made absolute)."""
     try:
         return Path(path).resolve().parent
-    except (OSError, RuntimeError):
+    except (OSError, RuntimeError, ValueError):  # ValueError: a NUL in the name (round 88a F2)
         return Path(os.path.abspath(path)).parent
 
 
