@@ -276,6 +276,21 @@ def test_a_pair_made_through_another_lens_is_redone(tmp_path, weights, capsys):
     assert main(args) == 0 and mtimes(out) == before, "a stamp of the image alone (an older folder) does not judge the camera"
 
 
+def test_sam_flags_given_with_other_masks_are_said(tmp_path, weights, capsys):
+    """Round 87c F5: --sam-checkpoint, --sam-model and --sam-points-per-side with --masks slic were taken without a word."""
+    import shutil
+
+    from PIL import Image
+
+    src = tmp_path / "ds"
+    shutil.copytree(_one_camera_dataset(tmp_path / "one", Image.fromarray(np.full((48, 64, 3), 40, np.uint8))), src)
+    args = slic_features_argv(src, tmp_path / "features", weights)
+    assert main([*args, "--sam-points-per-side", "8", "--sam-model", "vit_b"]) == 0
+    err = capsys.readouterr().err
+    assert "--sam-model, --sam-points-per-side apply to --masks sam; --masks slic does not read them" in err, err
+    assert main(args) == 0 and "apply to --masks sam" not in capsys.readouterr().err
+
+
 def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights):
     """Was (a probe, 2026-12-01): the stamps were written when a run finished, so the pairs of a run
     stopped by an unreadable image (or Ctrl-C, or a kill) had none; the next run kept them as complete

@@ -4,6 +4,8 @@ kernel against a matrix product, SAM loading from checkpoints, and the weight-fr
 from __future__ import annotations
 
 import os
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -196,6 +198,19 @@ def test_load_sam_roundtrip_and_errors(tmp_path):
     torch.save({"something": torch.zeros(3)}, tmp_path / "other.pth")
     with pytest.raises(InputError, match="not a segment-anything SAM checkpoint"):
         load_sam(tmp_path / "other.pth")
+    # round 87c F3: a tensor missing or mis-shaped was said only as torch's "Error(s) in loading state_dict for Sam:"
+    name = next(k for k in state if k.startswith("mask_decoder.") and state[k].ndim == 2)
+    torch.save({**state, name: torch.zeros(state[name].shape[0] + 1, state[name].shape[1])}, tmp_path / "shape.pth")
+    with pytest.raises(InputError, match=rf"not a segment-anything SAM checkpoint \(size mismatch for {re.escape(name)}"):
+        load_sam(tmp_path / "shape.pth")
+
+
+def test_a_clip_checkpoint_of_another_architecture_is_said_to_not_fit():
+    """Round 87c F1: open_clip's "text pos_embed width changed!" (a ViT-L checkpoint given to ViT-B-16) was called an
+    unreadable file."""
+    from drsplat.features.clip import checkpoint_problem
+
+    assert "do not fit this architecture" in checkpoint_problem(Path("any.pt"), AssertionError("text pos_embed width changed!"))
 
 
 def test_sam_offline_message(monkeypatch, tmp_path):

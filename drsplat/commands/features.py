@@ -38,11 +38,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--clip-config", type=Path, default=None, metavar="JSON",
                    help="open_clip model config file, for an architecture open_clip does not ship (named by --clip-model)")
     p.add_argument("--sam-checkpoint", type=Path, default=None, metavar="PATH", help="local SAM checkpoint (vit_b/l/h, read from the file); no download")
-    p.add_argument("--sam-model", choices=tuple(SAM_URLS), default="vit_h",
+    p.add_argument("--sam-model", choices=tuple(SAM_URLS), default=None,
                    help="official SAM weights to download into ~/.cache/drsplat when no --sam-checkpoint is given (default vit_h, as LangSplat)")
-    p.add_argument("--sam-points-per-side", type=int_range(1, 256), default=32, metavar="N",
+    p.add_argument("--sam-points-per-side", type=int_range(1, 256), default=None, metavar="N",
                    help="SAM prompt grid per side (LangSplat 32; fewer is faster on a CPU, with fewer small masks)")
-    p.add_argument("--sam-crop-layers", type=int_range(0, 4), default=1, metavar="N",
+    p.add_argument("--sam-crop-layers", type=int_range(0, 4), default=None, metavar="N",
                    help="SAM crop layers (LangSplat 1: the image plus 4 overlapping crops; 0 is ~5x faster)")
     p.add_argument("--resolution", type=resolution_value, default=-1, metavar="R",
                    help="image scale as 3DGS -r: -1 full size capped at 1600 px wide, 1/2/4/8 divide, other values a target width")
@@ -76,9 +76,26 @@ def refuse_image_folder(out: Path, cameras) -> None:
                           "(e.g. SOURCE/language_features)")
 
 
+SAM_DEFAULTS = {"sam_model": "vit_h", "sam_points_per_side": 32, "sam_crop_layers": 1}  # LangSplat's
+
+
+def resolve_sam_flags(args: argparse.Namespace) -> None:
+    """The SAM flags' defaults filled in, after one warning naming those given with another --masks (round 87c F5: taken
+    without a word)."""
+    given = [f"--{name.replace('_', '-')}" for name in ("sam_checkpoint", *SAM_DEFAULTS) if getattr(args, name) is not None]
+    if given and args.masks != "sam":
+        log.warning("%s %s to --masks sam; --masks %s does not read %s", ", ".join(given), "applies" if len(given) == 1 else "apply",
+                    args.masks, "it" if len(given) == 1 else "them")
+    for name, default in SAM_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
+
+
 def run(args: argparse.Namespace) -> int:
     from drsplat.features.clip import model_for_config
     from drsplat.features.extract import ModelSpec, build_models, extract_features, feature_cameras, make_manifest
+
+    resolve_sam_flags(args)
 
     if args.out.exists() and not args.out.is_dir():
         raise OutputError(args.out, "--out must be a features folder, but a file has that name")

@@ -181,8 +181,10 @@ def load_sam(checkpoint: str | Path, device: str = "cpu"):
         sam = build_sam(arch)
         sam.load_state_dict(state, strict=True)
     except (KeyError, RuntimeError, TypeError, IndexError, AttributeError, ValueError) as exc:
-        first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-        raise InputError(checkpoint, f"not a segment-anything SAM checkpoint ({first_line})") from None
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()] or [type(exc).__name__]
+        # torch's first line only says "Error(s) in loading state_dict for Sam:"; the tensor at fault is on the next (round 87c F3)
+        shown = lines[1] if len(lines) > 1 and lines[0].startswith("Error(s) in loading state_dict") else lines[0]
+        raise InputError(checkpoint, f"not a segment-anything SAM checkpoint ({shown[:200]})") from None
     return sam.to(device)
 
 
