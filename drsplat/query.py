@@ -143,8 +143,10 @@ def _unit64(rows: np.ndarray) -> np.ndarray:
 
 def text_embeddings(encoder: TextEncoder, phrases: list[str], field: LanguageField | None = None) -> np.ndarray:
     """Unit text embeddings [K, D] of phrases, after checking the encoder matches the field's model."""
-    if field is not None:
-        check_clip_models(field.clip_model, getattr(encoder, "model_id", None))
+    if field is not None:  # the checkpoint given named: its label may be the field's tag (round 87c F4: a file never passed)
+        given = getattr(encoder, "checkpoint", None)
+        check_clip_models(field.clip_model, getattr(encoder, "model_id", None),
+                          "the text encoder" + (f" (--clip-checkpoint {Path(given).name})" if given is not None else ""))
         if field.clip_weights is not None:  # the encoder's file is read only when there is something to compare it with
             check_clip_weights(field.clip_weights, getattr(encoder, "weights_digest", None), getattr(encoder, "checkpoint", None))
     emb = query_rows(encoder.encode_text(list(phrases)), "the text encoder's embedding of phrase")

@@ -181,8 +181,11 @@ def test_refuses_to_mix_models_or_generators(fern3, weights, tmp_path):
     slic = make_generator("slic")
     extract_features(cameras, out, slic, encoder, manifest=make_manifest(slic, encoder, nms, WIDTH, 1080), show_progress=False)
     other = ClipEncoder(TINY_CLIP, pretrained="another-finetune", checkpoint=weights["clip"], device="cpu")
-    with pytest.raises(DrsplatError, match=f"CLIP model mismatch: the features already in {out} were made with {TINY_CLIP}/file:tiny_clip.pt but this run's CLIP model is {TINY_CLIP}/another-finetune"):
+    with pytest.raises(DrsplatError, match=f"CLIP model mismatch: the features already in {out} were made with {TINY_CLIP}/file:tiny_clip.pt but this run's CLIP model is {TINY_CLIP}/another-finetune") as caught:
         extract_features(cameras, out, slic, other, manifest=make_manifest(slic, other, nms, WIDTH, 1080), show_progress=False)
+    # round 87c F2: the advice was --clip-model/--pretrained, which a digest check then refused as well
+    assert "pass the checkpoint they were made with, tiny_clip.pt, as --clip-checkpoint" in str(caught.value)
+    assert "--pretrained" not in str(caught.value)
     felz = make_generator("felzenszwalb")
     with pytest.raises(DrsplatError, match="mask generator 'slic', this run uses 'felzenszwalb'"):
         extract_features(cameras, out, felz, encoder, manifest=make_manifest(felz, encoder, nms, WIDTH, 1080), show_progress=False)
@@ -214,7 +217,7 @@ def test_resume_refuses_other_resolution_mask_settings_or_source(fern3, weights,
     assert other.name == weights["clip"].name and other.read_bytes() != weights["clip"].read_bytes()
     retrained = ClipEncoder(TINY_CLIP, checkpoint=other, device="cpu")
     manifest = make_manifest(slic, retrained, NmsParams(), WIDTH, 1080, {"source": str(fern3.resolve())})
-    with pytest.raises(DrsplatError, match="holds features made with clip_weights .*a --clip-checkpoint file of the same name"):
+    with pytest.raises(DrsplatError, match="holds features made with clip_weights .*--clip-checkpoint: compared by the file's contents, whatever its name"):
         extract_features(cameras, out, slic, retrained, manifest=manifest, show_progress=False)
 
 

@@ -298,6 +298,11 @@ def test_clip_model_mismatch_is_refused(world, fields):
         check_clip_models("oracle", "ViT-B-16/laion2b_s34b_b88k")
     with pytest.raises(DrsplatError, match="mismatch"):
         text_embeddings(FakeEncoder(world[3], "ViT-B-32/openai"), ["lbl1"], fields["exact"])
+    # round 87c F4: an encoder of a given checkpoint is labelled with the field's tag; the message names the file given
+    labelled = FakeEncoder(world[3], "ViT-B-32/file:theirs.pt")
+    labelled.checkpoint = "/somewhere/mine.pt"
+    with pytest.raises(DrsplatError, match=r"the text encoder \(--clip-checkpoint mine.pt\) is ViT-B-32/file:theirs.pt"):
+        text_embeddings(labelled, ["lbl1"], fields["exact"])
     emb = text_embeddings(FakeEncoder(world[3]), ["lbl1", "lbl2"], fields["exact"])
     np.testing.assert_allclose(np.linalg.norm(emb, axis=1), 1, atol=1e-6)
 

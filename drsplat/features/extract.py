@@ -383,7 +383,7 @@ RESUME_KEYS = {  # manifest entries that change every feature file: a run resumi
     "postprocess": "mask post-processing",
     "resolution": "--resolution",
     "max_height": "--max-height",
-    "clip_weights": "CLIP weights (a --clip-checkpoint file of the same name but other contents)",
+    "clip_weights": "CLIP weights (--clip-checkpoint: compared by the file's contents, whatever its name)",
     "sam_weights": "SAM weights (--sam-checkpoint, or the --sam-model downloaded)",
     "crop_normalisation": "crop normalisation (the weights' tag sets it: --pretrained)",
 }

@@ -120,10 +120,11 @@ def check_compatible(a: str | None, b: str | None, what_a: str = "the features",
                     "checked", what_a, a, what_b, b)
         return
     if canonical_model_id(known[0]) != canonical_model_id(known[1]):
-        raise DrsplatError(
-            f"CLIP model mismatch: {what_a} were made with {a} but {what_b} is {b}; "
-            f"embeddings of different CLIP models cannot be compared (use --clip-model/--pretrained to match {a})"
-        )
+        # a tag "file:NAME" labels a checkpoint file: no --pretrained makes other weights those (round 87c F2: advised, refused again)
+        how = (f"pass the checkpoint they were made with, {tag_a[len('file:'):]}, as --clip-checkpoint (with --clip-model {arch_a}), or "
+               "make them again" if tag_a is not None and tag_a.startswith("file:") else f"use --clip-model/--pretrained to match {a}")
+        raise DrsplatError(f"CLIP model mismatch: {what_a} were made with {a} but {what_b} is {b}; embeddings of different CLIP models "
+                           f"cannot be compared ({how})")
 
 
 def is_oracle(model_id: str | None) -> bool:
