@@ -780,8 +780,7 @@ class DatasetPaths:
                 entries = []
             table: dict[str, list[str]] = {}
             for entry in entries:
-                base, dot, suffix = entry.rpartition(".")
-                if dot and f".{suffix}".lower() in IMAGE_SUFFIXES_LOWER:
+                if (base := _image_base(entry)) is not None:
                     table.setdefault(base, []).append(entry)
             self.suffixed[folder] = table
         # the first that is a file: a folder or a dangling link of that name hid the image after it (round 87a F2)
@@ -814,9 +813,14 @@ def _same_spelling(entry: str, wanted: str) -> bool:
     of its own where `wanted` has none (round 86c F2: the camera name 'img' beside IMG.png was not said)."""
     if _folded(entry) == _folded(wanted):
         return True
-    base, dot, suffix = entry.rpartition(".")
-    return bool(dot) and Path(wanted).suffix.lower() not in IMAGE_SUFFIXES_LOWER and f".{suffix}".lower() in IMAGE_SUFFIXES_LOWER \
-        and _folded(base) == _folded(wanted)
+    base = _image_base(entry)
+    return base is not None and _image_base(wanted) is None and _folded(base) == _folded(wanted)
+
+
+def _image_base(name: str) -> str | None:
+    """`name` without its image suffix (any case: "IMG.Png" -> "IMG"), or None when it has none."""
+    base, dot, suffix = name.rpartition(".")
+    return base if dot and f".{suffix}".lower() in IMAGE_SUFFIXES_LOWER else None
 
 
 def _spelling_difference(entry: str, wanted: str) -> str:
@@ -825,7 +829,7 @@ def _spelling_difference(entry: str, wanted: str) -> str:
     image suffix of the entry's own, where `wanted` has none, is named too."""
     extra = ""
     if _folded(entry) != _folded(wanted):  # alike only without the entry's image suffix
-        entry, extra = entry.rpartition(".")[0], " (and it has an image suffix the cameras leave out)"
+        entry, extra = _image_base(entry), " (and it has an image suffix the cameras leave out)"
     a, b = unicodedata.normalize("NFC", entry), unicodedata.normalize("NFC", wanted)
     if a == b:
         return "in how its accented letters are encoded (Unicode NFC against NFD: a copy or zip from macOS?)" + extra

@@ -22,7 +22,7 @@ import numpy as np
 from drsplat.defaults import MIN_NORM
 from drsplat.errors import DrsplatError, InputError
 from drsplat.features.modelid import CANONICAL_PHRASES, check_clip_weights, check_compatible
-from drsplat.lang import LanguageField, has_direction, undirected_rows_problem, unit_rows
+from drsplat.lang import LanguageField, has_direction, undirected_rows_problem, unit_rows, unit_rows64
 from drsplat.utils import load_npy
 
 log = logging.getLogger(__name__)
@@ -90,7 +90,7 @@ def first_of_direction(units: np.ndarray) -> np.ndarray:
     if q < 2:
         return np.arange(q, dtype=np.int64)
     _, rep, inverse = np.unique(units, axis=0, return_index=True, return_inverse=True)
-    u = _unit64(units[rep])
+    u = unit_rows64(units[rep])
     parent = np.arange(rep.size)
 
     def root(a: int) -> int:
@@ -119,7 +119,7 @@ def first_of_direction(units: np.ndarray) -> np.ndarray:
 def first_of_direction_reference(units: np.ndarray) -> np.ndarray:
     """`first_of_direction` by every pair: the groups are the connected parts of the graph 1 - cos ≤ SAME_DIRECTION."""
     q = units.shape[0]
-    u = _unit64(units)
+    u = unit_rows64(units)
     near = 1.0 - u @ u.T <= SAME_DIRECTION
     first = np.arange(q, dtype=np.int64)
     for i in range(q):  # a breadth-first search from each row not yet in an earlier group
@@ -131,14 +131,6 @@ def first_of_direction_reference(units: np.ndarray) -> np.ndarray:
             group.update(frontier)
         first[sorted(group)] = i
     return first
-
-
-def _unit64(rows: np.ndarray) -> np.ndarray:
-    """rows [K, D] divided by their float64 norms (a zero row stays zero): `unit_rows` leaves a row within 2⁻²² of unit
-    as it is, and against such a row the cosine of its own copy times 3 was 1 - 4e-8."""
-    u = np.asarray(rows, np.float64)
-    norms = np.linalg.norm(u, axis=1, keepdims=True)
-    return u / np.where(norms > 0.0, norms, 1.0)
 
 
 def text_embeddings(encoder: TextEncoder, phrases: list[str], field: LanguageField | None = None) -> np.ndarray:

@@ -258,6 +258,17 @@ PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 NUMPY_TO_PLY = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float", "f8": "double"}
+
+
+def starts_as_ply(head: bytes) -> bool:
+    """Whether a file's first bytes are a PLY's first line: "ply" and a line end."""
+    return head[:3] == b"ply" and head[3:4] in (b"\n", b"\r")
+
+
+def ply_type_name(dtype) -> str:
+    """The PLY type a numpy dtype is declared as ("uchar", "float", ...), or numpy's name for one PLY has not."""
+    dtype = np.dtype(dtype)
+    return NUMPY_TO_PLY.get(f"{dtype.kind}{dtype.itemsize}", str(dtype))
 MAX_HEADER_BYTES = 1 << 20
 UNREAD_PROPERTIES = {"nx", "ny", "nz"}  # of the INRIA layout, never read (3DGS writes them as zeros)
 CORE_PROPERTIES = {"x", "y", "z", "nx", "ny", "nz", "opacity"} | {f"scale_{i}" for i in range(3)} | {f"rot_{i}" for i in range(4)} | {f"f_dc_{i}" for i in range(3)}
@@ -745,7 +756,7 @@ def ascii_integer_out_of_range(path: Path, header: PlyHeader) -> tuple[str, str]
                     except ValueError:
                         continue
                     if not limits.min <= value <= limits.max:
-                        declared = NUMPY_TO_PLY.get(f"{np.dtype(dtype).kind}{np.dtype(dtype).itemsize}", dtype)
+                        declared = ply_type_name(dtype)
                         return name, (f"element '{element.name}': row {row}: property '{name}' holds {value}, outside its declared type "
                                       f"{declared} ({limits.min} to {limits.max})")
     return None
@@ -1049,7 +1060,7 @@ def check_integer_column(path: Path, name: str, column: np.ndarray, storage: str
     have = column.dtype
     if have.kind == want.kind and have.itemsize == want.itemsize:
         return
-    declared = NUMPY_TO_PLY.get(f"{have.kind}{have.itemsize}", str(have))
+    declared = ply_type_name(have)
     bits = 8 * want.itemsize
     capacity = 8 * have.itemsize if have.kind in "iu" else FLOAT_EXACT_BITS.get(have.itemsize, 0)
     expected = f"expected {storage} ({meaning}), as drsplat writes it"
@@ -1105,7 +1116,7 @@ def rgb_colour_problem(dtype: np.dtype) -> str | None:
     f_rest_* (it drops the higher SH), the rest as 3DGS writes it. A float colour may be 0-1 or
     0-255, and f_rest_* beside 8-bit colours are SH terms of a DC that is gone: neither is guessed."""
     names = dtype.names or ()
-    types = sorted({NUMPY_TO_PLY.get(f"{dtype[c].kind}{dtype[c].itemsize}", str(dtype[c])) for c in RGB_PROPERTIES})
+    types = sorted({ply_type_name(dtype[c]) for c in RGB_PROPERTIES})
     if types != ["uchar"]:
         return f"declared {'/'.join(types)}, not uchar 0-255"
     if any(n.startswith("f_rest_") for n in names):
@@ -1137,9 +1148,9 @@ def refuse_integer_parameters(path: Path, dtype: np.dtype, names: list[str]) -> 
     encoding (0-255 alpha or colour), which read as the parameter is wrong for every Gaussian
     (alpha 255 as logit 255, colour 200 as an SH coefficient: white)."""
     for name in names:
-        kind, size = dtype[name].kind, dtype[name].itemsize
+        kind = dtype[name].kind
         if kind in "iu":
-            declared = NUMPY_TO_PLY.get(f"{kind}{size}", str(dtype[name]))
+            declared = ply_type_name(dtype[name])
             raise _fail(path, f"property {name} is declared {declared}, an integer type, where every 3DGS writer stores a float "
                               "(an opacity logit, log scale, rotation or SH coefficient), so its values would be misread; "
                               "re-export the scene with float properties", field=name)
@@ -1592,7 +1603,7 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
             raise _fail(path, f"is a compressed PLY whose chunk element lacks the range property {missing[0]}", field=missing[0])
         for name in names:
             if chunk.dtype[name].kind != "f":
-                declared = NUMPY_TO_PLY.get(f"{chunk.dtype[name].kind}{chunk.dtype[name].itemsize}", str(chunk.dtype[name]))
+                declared = ply_type_name(chunk.dtype[name])
                 raise _fail(path, f"is a compressed PLY whose chunk property {name} is declared {declared}; every writer stores "
                                   "the chunk ranges as float, so its values would be misread", field=name)
         with np.errstate(over="ignore", invalid="ignore"):  # a double past float32 is inf, a signalling NaN a NaN: both counted later

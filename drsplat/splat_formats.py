@@ -64,7 +64,7 @@ import zstandard
 
 from drsplat.errors import InputError, OutputError
 from drsplat.scene import (COARSE_EXTENT_SHARE, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, check_element_sizes, compressed_ply_bytes,
-                           dc_from_rgb, load_ply_report, opacity_logits, read_ply_header, save_ply)
+                           dc_from_rgb, load_ply_report, opacity_logits, read_ply_header, save_ply, starts_as_ply)
 from drsplat.utils import unreachable_cause, write_bytes_atomic
 
 log = logging.getLogger(__name__)
@@ -104,7 +104,7 @@ def scene_format(path: Path) -> str:
     bytes (gzip or "NGSP") or its name; anything else is "ply", whose reader then names what is wrong."""
     with open(path, "rb") as f:
         head = f.read(SNIFF_BYTES)
-    if head[:3] == b"ply" and head[3:4] in (b"\n", b"\r"):
+    if starts_as_ply(head):
         return "ply"
     if path.suffix.lower() in CHECKPOINT_SUFFIXES:
         if head[:4] != ZIP_MAGIC:

@@ -15,7 +15,7 @@ from drsplat.cameras import Camera, load_cameras, look_at_camera
 from drsplat.raster import prepare_scene, rasterize_topk
 from drsplat.registration import RegisterOptions, register, register_features
 from drsplat.registration.aggregate import BLUR, SHARP_BLUR, SHARP_FLOOR, SurfaceSupport, ViewStats, sharpening, view_weights, view_weights_reference
-from drsplat.registration.check import unit_rows
+from drsplat.lang import unit_rows64
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.fit import (
     choose_footprint,
@@ -201,7 +201,7 @@ def test_held_out_score_translates_another_views_labels_and_scores_them_as_the_r
     held.keep(labels_a, feats_a)
     assert sum(a.nbytes for a in held.earlier[0]) <= 2 * labels_a.nbytes + feats_a.nbytes
     labels_b = view_labels(ids, weights, masks_b, m, Coalescer(n))
-    both = held.labellings(labels_b, masks_b, unit_rows(feats_b))
+    both = held.labellings(labels_b, masks_b, unit_rows64(feats_b))
     np.testing.assert_array_equal(both, np.stack([labels_b, translated], 1))
     own, score = rerender_scores(ids, weights, both, masks_b, m)  # b's own S and H(a, b) in one pass
     assert score == pytest.approx(mask_iou_score(masks_b, rerender_reference(ids, weights, translated)), abs=1e-12)
@@ -228,11 +228,11 @@ def test_the_held_out_translation_makes_its_cosines_a_block_of_rows_at_a_time(mo
     g = fit.present_masks(groups_b, m).size
     monkeypatch.setattr(fit, "TRANSLATION_BLOCK_BYTES", 8 * g * 5)  # 5 rows a block: 4 blocks and one of 3
     np.testing.assert_array_equal(translate_labels(labels, feats_a, feats_b, groups_b), _translate_reference(labels, feats_a, feats_b, groups_b))
-    assert fit.mask_translation(unit_rows(feats_a), unit_rows(feats_b), fit.present_masks(groups_b, m))[-1] == -1
+    assert fit.mask_translation(unit_rows64(feats_a), unit_rows64(feats_b), fit.present_masks(groups_b, m))[-1] == -1
     monkeypatch.undo()
 
     many = 6000  # all at once: 6000 x 6000 float64 = 288 MB
-    units = unit_rows(rng.normal(size=(many, 4)))
+    units = unit_rows64(rng.normal(size=(many, 4)))
     present = np.arange(many, dtype=np.int32)
     tracemalloc.start()
     try:

@@ -76,26 +76,23 @@ def refuse_image_folder(out: Path, cameras) -> None:
                           "(e.g. SOURCE/language_features)")
 
 
-SAM_DEFAULTS = {"sam_model": "vit_h", "sam_points_per_side": 32, "sam_crop_layers": 1}  # LangSplat's
+SAM_TUNING = ("sam_model", "sam_points_per_side", "sam_crop_layers")  # flags whose defaults (LangSplat's) are ModelSpec's
 
 
-def resolve_sam_flags(args: argparse.Namespace) -> None:
-    """The SAM flags' defaults filled in, after one warning naming those given with another --masks (round 87c F5: taken
-    without a word)."""
-    given = [f"--{name.replace('_', '-')}" for name in ("sam_checkpoint", *SAM_DEFAULTS) if getattr(args, name) is not None]
-    if given and args.masks != "sam":
-        log.warning("%s %s to --masks sam; --masks %s does not read %s", ", ".join(given), "applies" if len(given) == 1 else "apply",
-                    args.masks, "it" if len(given) == 1 else "them")
-    for name, default in SAM_DEFAULTS.items():
-        if getattr(args, name) is None:
-            setattr(args, name, default)
+def given_sam_tuning(args: argparse.Namespace) -> dict:
+    """The SAM flags given (their defaults are `ModelSpec`'s, so they are said once), after one warning naming those given
+    with another --masks (round 87c F5: taken without a word)."""
+    given = {name: getattr(args, name) for name in SAM_TUNING if getattr(args, name) is not None}
+    flags = [f"--{name.replace('_', '-')}" for name in ("sam_checkpoint", *given) if getattr(args, name) is not None]
+    if flags and args.masks != "sam":
+        log.warning("%s %s to --masks sam; --masks %s does not read %s", ", ".join(flags), "applies" if len(flags) == 1 else "apply",
+                    args.masks, "it" if len(flags) == 1 else "them")
+    return given
 
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.features.clip import model_for_config
     from drsplat.features.extract import ModelSpec, build_models, extract_features, feature_cameras, make_manifest
-
-    resolve_sam_flags(args)
 
     if args.out.exists() and not args.out.is_dir():
         raise OutputError(args.out, "--out must be a features folder, but a file has that name")
@@ -104,8 +101,7 @@ def run(args: argparse.Namespace) -> int:
     refuse_image_folder(args.out, cameras)
     spec = ModelSpec(
         masks=args.masks, clip_model=model_for_config(args.clip_model, args.clip_config), pretrained=args.pretrained, clip_checkpoint=args.clip_checkpoint,
-        sam_checkpoint=args.sam_checkpoint, sam_model=args.sam_model, sam_points_per_side=args.sam_points_per_side,
-        sam_crop_layers=args.sam_crop_layers, device=args.device, batch_size=args.batch_size, clip_config=args.clip_config,
+        sam_checkpoint=args.sam_checkpoint, **given_sam_tuning(args), device=args.device, batch_size=args.batch_size, clip_config=args.clip_config,
     )
     extra = {"source": str(args.source.resolve()), "sam_checkpoint": str(Path(args.sam_checkpoint).resolve()) if args.masks == "sam" and args.sam_checkpoint else
              ("" if args.masks == "sam" else None)}

@@ -15,7 +15,8 @@ from drsplat.defaults import MIN_NORM
 from drsplat.errors import InputError, UsageError, shown_path
 from drsplat.features.format import FEAT_SUFFIX, embedding_norms
 from drsplat.lang.codebook import PQ_KSUB, SCENE_PQ_M
-from drsplat.lang.plyformat import CODEBOOK_SUFFIX
+from drsplat.lang.plyformat import CODEBOOK_SUFFIX, codebook_path_for
+from drsplat.scene import starts_as_ply
 from drsplat.utils import load_npy
 
 log = logging.getLogger(__name__)
@@ -161,12 +162,12 @@ def warn_if_a_registrations_codebook(out: Path) -> None:
         name = path.name
         if not name.endswith(CODEBOOK_SUFFIX) or not path.is_file():
             continue
-        stem = name[: -len(CODEBOOK_SUFFIX)]
         try:
             entries = sorted(os.listdir(path.parent))
         except OSError:
             continue
-        owners = [e for e in entries if e != name and Path(e).stem == stem and not e.endswith(CODEBOOK_SUFFIX) and _is_ply(path.parent / e)]
+        # the files whose registration writes this name (`codebook_path_for`, the one owner of that rule)
+        owners = [e for e in entries if e != name and codebook_path_for(path.parent / e).name == name and _is_ply(path.parent / e)]
         if owners:
             ply = path.parent / owners[0]
             log.warning("--out %s replaces the codebook that registration writes for %s beside it: if %s uses it, its codes will "
@@ -182,7 +183,7 @@ def _is_ply(path: Path) -> bool:
         return False
     try:
         with open(path, "rb") as f:
-            return f.read(4) in (b"ply\n", b"ply\r")
+            return starts_as_ply(f.read(4))
     except OSError:
         return False
 

@@ -16,7 +16,7 @@ The registered PLY carries the field in extra vertex properties and a header com
 (docs/ARCHITECTURE.md, "The registered PLY"); the codebook file sits next to the PLY.
 """
 
-from drsplat.lang.codebook import PQ_BITS, PQ_KSUB, Codebook, codebook_from_index, has_direction, load_codebook, train_codebook, undirected_rows_problem, unit_rows
+from drsplat.lang.codebook import PQ_BITS, PQ_KSUB, Codebook, codebook_from_index, has_direction, load_codebook, train_codebook, undirected_rows_problem, unit_rows, unit_rows64
 from drsplat.lang.backends import BACKENDS, KINDS, ExactStorage, PQStorage
 from drsplat.lang.field import LanguageField, build_field
 from drsplat.lang.lut import (
@@ -66,6 +66,6 @@ __all__ = [
     "blocked_codes", "build_field", "codebook_from_index", "codebook_name_for", "codebook_path_for", "f32_sums",
     "field_comment", "field_extras", "half_scores", "header_text_problem", "has_direction", "inverse_norms", "is_lang_property", "load_codebook",
     "lut_scores", "lut_scores_blocked", "lut_scores_q8_reference", "lut_scores_reference", "parse_field_comment",
-    "q8_sums", "quantize_luts", "read_field", "simd_available", "strip_field", "train_codebook", "undirected_rows_problem", "unit_rows",
+    "q8_sums", "quantize_luts", "read_field", "simd_available", "strip_field", "train_codebook", "undirected_rows_problem", "unit_rows", "unit_rows64",
     "written_codebook_path",
 ]

@@ -42,7 +42,7 @@ from drsplat.lang.backends import BACKENDS, needs_codebook
 from drsplat.lang.codebook import MAX_DIM, load_codebook
 from drsplat.lang.field import LanguageField
 from drsplat.lang.lut import MIN_NORM, has_feature, subnormal_norms
-from drsplat.scene import NUMPY_TO_PLY, GaussianScene, PlyExtras, check_integer_column, counted, save_ply
+from drsplat.scene import GaussianScene, PlyExtras, check_integer_column, counted, ply_type_name, save_ply
 from drsplat.splat_formats import save_scene, written_format
 from drsplat.utils import atomic_path, clipped, file_stamp, is_special_file, output_target, outputs_together, refuse_write_protected
 
@@ -517,7 +517,7 @@ def float32_column(ply_path: Path, name: str, column: np.ndarray) -> np.ndarray:
         out = wide.astype(np.float32)
     if beyond:
         log.warning("%s: %d values of %s (declared %s) lie beyond float32's range (+-3.4e38) and are read as infinite",
-                    ply_path, beyond, name, NUMPY_TO_PLY.get(f"{column.dtype.kind}{column.dtype.itemsize}", str(column.dtype)))
+                    ply_path, beyond, name, ply_type_name(column.dtype))
     return out
 
 

@@ -122,6 +122,7 @@ import numpy as np
 
 from drsplat.defaults import CHECK_SLOTS, SUPPORT_EXTRA_SCRATCH, SUPPORT_READ_BYTES, SUPPORT_SCRATCH_BYTES, SUPPORT_TABLE_BYTES
 from drsplat.errors import DrsplatError
+from drsplat.lang.codebook import unit_rows64
 from drsplat.memory import format_size, small_page_full, small_page_zeros
 from drsplat.registration.pairlog import PairLog, ViewPairs
 from drsplat.registration.sink import Block, LogSink, PairSource, Sink
@@ -252,7 +253,7 @@ def check_reference(views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
         np.add.at(q, m, fixed_support(w.astype(np.float64)[:, None] * other * phi[:, None]))
         q /= SUPPORT_SCALE
         mass = np.bincount(m, fixed_support(w), num_masks) / SUPPORT_SCALE
-        units = unit_rows(feats)
+        units = unit_rows64(feats)
         units[c < 0] = 0.0
         has = mass > 0
         total = np.where(has, np.where(q > 0, q, 0.0).sum(axis=1) / np.where(has, mass, 1.0), 0.0)
@@ -674,13 +675,6 @@ class PairRecord:
                             view.num_pairs, view.num_nonfinite)
 
 
-def unit_rows(feats: np.ndarray) -> np.ndarray:
-    """[M, D] float64 unit rows of feats (zero rows stay zero)."""
-    f = np.asarray(feats, np.float64)
-    norm = np.linalg.norm(f, axis=1, keepdims=True)
-    return np.divide(f, norm, out=np.zeros_like(f), where=norm > 0)
-
-
 @dataclass
 class ViewSupport:
     """One view's masks as the check sees them: the other views' votes per (mask, cluster) pair that
@@ -706,7 +700,7 @@ class ViewSupport:
     @classmethod
     def empty(cls, feats: np.ndarray, clusters: np.ndarray, num_clusters: int) -> ViewSupport:
         """Zero sums for a view's masks: feats [M, D], clusters [M] (-1: never judged)."""
-        units = unit_rows(feats)
+        units = unit_rows64(feats)
         units[clusters < 0] = 0.0  # a mask without a cluster (dropped for non-finite values) is never judged
         none = np.zeros(0, np.int32)
         return cls(none, none, np.zeros(0, np.int64), np.zeros(0, np.int64), int(num_clusters), np.zeros(clusters.shape[0], np.int64), units)

@@ -80,13 +80,13 @@ import numpy as np
 from drsplat.cameras import Camera
 from drsplat.raster import NEAR, PreparedScene
 from drsplat.registration.aggregate import RayGeometry, SurfaceSupport, mode_hook, mode_stages
-from drsplat.registration.check import unit_rows
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.compute import ViewComputer, ViewJob, pairs_by_gaussian, prepare_geometry
 from drsplat.registration.culling import SpatialIndex
 from drsplat.registration.pairlog import ViewPairs
 from drsplat.registration.plan import PAIR_BYTES, view_pairs_bound
 from drsplat.features.format import read_features_report, resample_nearest, seg_path
+from drsplat.lang.codebook import unit_rows64
 from drsplat.registration.views import check_aspect, read_feature_headers
 from drsplat.scene import GaussianScene, scene_ball
 from drsplat.utils import CancelToken
@@ -617,7 +617,7 @@ def translate_labels(labels: np.ndarray, feats_from: np.ndarray, feats_to: np.nd
     so the labelling can be re-rendered in that view and scored against its masks. -1 stays -1; all
     -1 when that view holds no mask. A zero row has cosine 0 with every mask. The dense form, the
     reference of the fit stage's sparse `HeldOut`."""
-    trans = mask_translation(unit_rows(feats_from), unit_rows(feats_to), present_masks(groups_to, feats_to.shape[0]))
+    trans = mask_translation(unit_rows64(feats_from), unit_rows64(feats_to), present_masks(groups_to, feats_to.shape[0]))
     return np.where(labels >= 0, trans[np.maximum(labels, 0)], -1).astype(np.int32)
 
 
@@ -627,7 +627,7 @@ def present_masks(groups: np.ndarray, num_masks: int) -> np.ndarray:
 
 
 def mask_translation(units_from: np.ndarray, units_to: np.ndarray, present: np.ndarray) -> np.ndarray:
-    """[M_a + 1] int32 τ of `translate_labels` from unit rows (`check.unit_rows`) [M_a, D] and [M_b, D] and
+    """[M_a + 1] int32 τ of `translate_labels` from unit rows (`lang.unit_rows64`) [M_a, D] and [M_b, D] and
     the other view's present masks [G]; entry M_a (and all of τ when G = 0) is -1. The cosines are
     made TRANSLATION_BLOCK_BYTES of rows at a time: at once, [M_a, G] float64 asked 703 GiB of views
     of 640x480 one-pixel masks (a probe, round 31); one block up to ~2,900 masks a view."""
@@ -660,7 +660,7 @@ class HeldOut:
         out = np.full((labels.shape[0], 1 + len(self.earlier)), -1, np.int32)
         out[:, 0] = labels
         for column, (seen, masks, feats_from) in enumerate(self.earlier, 1):
-            out[seen, column] = mask_translation(unit_rows(feats_from), units, present)[masks]
+            out[seen, column] = mask_translation(unit_rows64(feats_from), units, present)[masks]
         return out
 
     def keep(self, labels: np.ndarray, feats: np.ndarray) -> None:
@@ -756,7 +756,7 @@ def fit_stage(mode: str, scene: GaussianScene, views: Sequence[Camera], features
         floating = probe_floaters(support, stats)
         same = same_embedding(feats)
         groups = mask_groups(mask_ids, same)
-        units = unit_rows(feats)
+        units = unit_rows64(feats)
         scored = None
         both: dict[str, ViewPairs] = {}
         for footprint in FOOTPRINTS:  # the paper's first: its pairs decide whether the view scores
