@@ -647,6 +647,21 @@ def test_eval_lerf_bad_annotation_is_one_error_naming_file_and_field(registered,
     assert "pairs" not in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("spelling", ["missing", "blank", "case"])
+def test_eval_lerf_unnamed_category_names_its_annotation_file_and_object(registered, tmp_path, capsys, spelling):
+    """Round 89a F2: a category without a label name was reported against the names file only, with no
+    word of the annotation holding it (a typo among LERF-OVS's hundreds of objects) or of a blank."""
+    r = registered
+    first = json.loads((r["labels"] / "orbit_000.json").read_text())["objects"][1]["category"]
+    wrong = {"missing": "spaceship", "blank": f" {first}", "case": first.upper()}[spelling]
+    folder = edited_view(r, tmp_path / "labels", lambda d: d["objects"][1].update(category=wrong))
+    assert main(lerf_argv(r, folder)) == 1
+    err = capsys.readouterr().err
+    assert f"orbit_000.json: field 'objects[1].category': category {wrong!r} is not among the 8 names of " in err, err
+    assert "label_names.json" in err and "Traceback" not in err
+    assert (f"the names hold {first!r}: the spellings differ in blanks or case" in err) == (spelling != "missing")
+
+
 def test_eval_lerf_leaves_degenerate_ground_truth_out_of_the_mean(registered, tmp_path, capsys):
     """An object whose polygon lies outside the image scored 0 (or a perfect 1.000 when nothing was
     selected); now its pair is warned about and left out, and the mean is that of the other pairs."""

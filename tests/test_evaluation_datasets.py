@@ -25,6 +25,7 @@ from drsplat.eval.datasets import (
 )
 from drsplat.errors import DrsplatError, InputError
 from drsplat.eval.lerf import mask_iou
+from drsplat.eval.polyfill import fill_polygon
 from tests.conftest import import_needing_system_library
 
 OPEN3D_SYSTEM_PACKAGE = "libusb-1.0-0"  # open3d links against libusb-1.0.so.0
@@ -77,7 +78,7 @@ def test_lerf_boxes_per_category_from_bbox_or_the_polygons_extent(tmp_path):
     path = tmp_path / "frame_00001.json"
     objects = [{"category": "a", "bbox": [10, 12, 2, 3], "segmentation": [[2, 3], [10, 3], [10, 12]]},
                {"category": "a", "segmentation": [[[20, 20], [25, 21], [22, 28]], [[1, 30], [3, 30], [2, 31]]]},
-               {"category": "gone", "bbox": [0, 0, 1, 1], "segmentation": [[1, 1], [2, 2]]}]
+               {"category": "gone", "bbox": [0, 0, 1, 1], "segmentation": [[41, 41], [42, 42]]}]  # outside the 40x40 image
     path.write_text(json.dumps({"info": {"width": 40, "height": 40}, "objects": objects}))
     view = load_lerf_view(path)
     np.testing.assert_array_equal(view.boxes["a"], [[10, 12, 2, 3], [1, 20, 25, 31]])
@@ -292,7 +293,8 @@ def test_lerf_list_of_polygons_is_their_union(tmp_path):
 
 
 @pytest.mark.parametrize("polygon, why", [([[x + 1000, y] for x, y in [[2, 2], [10, 2], [10, 10]]], "lies wholly outside the 40x30 image"),
-                                          ([[2, 2], [10, 10]], "has fewer than 3 points")], ids=["outside", "two-points"])
+                                          ([], "has no point"), ([[1000, 2], [1010, 10]], "lies wholly outside the 40x30 image")],
+                         ids=["outside", "no-point", "line-outside"])
 def test_lerf_object_without_pixels_is_warned_and_left_out(tmp_path, caplog, polygon, why):
     """An object whose mask comes out empty was scored 0 against any selection and 1.0 against none;
     now its (view, category) pair is warned about (file, object index, category) and skipped, even
@@ -306,6 +308,24 @@ def test_lerf_object_without_pixels_is_warned_and_left_out(tmp_path, caplog, pol
     assert list(view.masks) == ["box"] and list(view.skipped) == ["cup"]
     (message,) = [r.getMessage() for r in caplog.records]
     assert "frame_00001.json" in message and "objects[2]" in message and "'cup'" in message and why in message
+
+
+@pytest.mark.parametrize("polygon, drawn", [([[2, 2], [10, 6]], "a line"), ([[7, 3]], "a point")], ids=["two-points", "one-point"])
+def test_lerf_polygon_of_one_or_two_points_is_scored_as_opencv_draws_it(tmp_path, caplog, polygon, drawn):
+    """Round 89a F1: a 2-point polygon was said to cover no pixel and its pair left out, though
+    LangSplat's cv2.fillPoly draws its line (and a repeated third vertex made the same line scored).
+    Now it paints what the fill paints, the same as with the repeated vertex, with a warning."""
+    objects = [{"category": "stick", "segmentation": polygon}]
+    with caplog.at_level("WARNING"):
+        view = load_lerf_view(write_json(tmp_path / "frame_00001.json", lerf_doc(objects=objects)))
+    repeated = load_lerf_view(write_json(tmp_path / "frame_00002.json", lerf_doc(name="frame_00002.jpg",
+                                                                                 objects=[{"category": "stick", "segmentation": [*polygon, polygon[0]]}])))
+    assert view.skipped == {} and list(view.masks) == ["stick"]
+    np.testing.assert_array_equal(view.masks["stick"], repeated.masks["stick"])
+    np.testing.assert_array_equal(view.masks["stick"], fill_polygon(np.array(polygon), 30, 40))
+    assert view.masks["stick"].sum() == (9 if drawn == "a line" else 1) and view.masks["stick"][3, 7] == (drawn == "a point")
+    (message,) = [r.getMessage() for r in caplog.records if "frame_00001.json" in r.getMessage()]
+    assert "objects[0] (category 'stick')" in message and f"not an area; scored as OpenCV's fill draws it ({drawn}, " in message
 
 
 def test_lerf_view_name_disagreeing_with_the_file_is_warned_and_duplicates_refused(tmp_path, caplog):

@@ -117,7 +117,8 @@ def test_float_vertices_are_truncated_toward_zero_as_langsplat_casts_them():
 def test_the_outline_is_painted_with_its_corners():
     m = polygon_mask(np.array([[2, 2], [6, 2], [6, 6], [2, 6]]), 10, 10)
     assert m.sum() == 25 and m[2:7, 2:7].all()  # cv2 paints the square's edges too: 5 x 5
-    assert polygon_mask(np.array([[1, 1], [8, 1]]), 10, 10).sum() == 0  # fewer than 3 vertices: degenerate ground truth
+    line = polygon_mask(np.array([[1, 1], [8, 1]]), 10, 10)  # two vertices: cv2.fillPoly draws the line (round 89a F1: nothing)
+    assert line.sum() == 8 and line[1, 1:9].all()
 
 
 def test_masks_written_as_polygons_come_back():

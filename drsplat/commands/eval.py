@@ -640,6 +640,24 @@ def trained_cameras(scene, registered: Path) -> dict:
     return {"scene_path": checkpoint, "refinements": refinements}
 
 
+def check_categories_named(views, categories: list[str], names: list[str], names_path: Path) -> None:
+    """Every annotated category must have a label name (and so a query embedding). The error names
+    the first annotation file and object holding a missing category, the names file, and a spelling
+    of it that the names hold up to blanks or case (round 89a F2: only the names file was named)."""
+    missing = [c for c in categories if c not in names]
+    if not missing:
+        return
+    first = missing[0]
+    view = next(v for v in views if first in v.masks or first in v.skipped)
+    k = view.first_object.get(first)
+    near = [n for n in names if n.strip().casefold() == first.strip().casefold()]
+    hint = f" (the names hold {near[0]!r}: the spellings differ in blanks or case)" if near else ""
+    more = f"; {len(missing) - 1} more annotated categor{'y' if len(missing) == 2 else 'ies'} lack one too: {missing[1:6]}" if len(missing) > 1 else ""
+    raise InputError(view.path, f"category {first!r} is not among the {len(names)} names of {shown_path(names_path)}, so it has no "
+                                f"query embedding{hint}{more}",
+                     field=f"objects[{k}].category" if k is not None else "objects")
+
+
 def run_lerf(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.commands.common import load_registered
@@ -670,9 +688,7 @@ def run_lerf(args: argparse.Namespace) -> int:
         raise UsageError(f"--text-embeddings needs --label-names NAMES.json (one name per row, in the rows' order): an embedding file "
                          f"holds no names, so its rows cannot be matched to the {len(categories)} annotated categories")
     names = load_label_names(args.label_names, categories)
-    missing = [c for c in categories if c not in names]
-    if missing:
-        raise InputError(args.label_names, f"annotated categories {missing} have no entry (and so no query embedding)")
+    check_categories_named(views, categories, names, args.label_names)
     if args.protocol == "langsplat":
         return _run_lerf_langsplat(args, scene, field, cameras, views, names, categories, assigned)
     scores = label_scores(args, field, names)

@@ -74,6 +74,7 @@ class AnnotatedView:
     path: Path | None = None
     skipped: dict[str, str] = dataclass_field(default_factory=dict)
     boxes: dict[str, np.ndarray] = dataclass_field(default_factory=dict)  # category -> [B, 4] (x1, y1, x2, y2), one per object
+    first_object: dict[str, int] = dataclass_field(default_factory=dict)  # category -> the index of its first entry of 'objects'
 
 
 @dataclass
@@ -129,8 +130,10 @@ def polygon_mask(points: np.ndarray, height: int, width: int) -> np.ndarray:
     poly = np.asarray(points, np.float64).reshape(-1, 2)
     if poly.size and (np.abs(poly) > FAR_VERTEX + max(width, height)).any():
         poly = clip_polygon(poly, -2.0, -2.0, width + 2.0, height + 2.0)
-    if poly.shape[0] < 3:  # a degenerate polygon: the caller leaves its (view, category) pair out
+    if poly.shape[0] == 0:  # no vertex: OpenCV draws nothing; the caller leaves its (view, category) pair out
         return np.zeros((height, width), np.bool_)
+    # one or two vertices are drawn as OpenCV draws them (a point, a line; round 89a F1: a 2-point
+    # polygon was said to cover no pixel and its pair left out, the same line with a third vertex scored)
     return fill_polygon(truncate_vertices(poly), height, width)
 
 
@@ -287,26 +290,33 @@ def check_annotation_size(path: Path | None, name: str, width: int, height: int,
 def rasterise_lerf_document(doc: LerfDocument) -> AnnotatedView:
     """Masks per category: the union of the category's polygons.
 
-    Degenerate ground truth: a polygon that paints no pixel (fewer than 3 points, or wholly outside
-    the image) means the category's mask lacks part of what was annotated, so its IoU would be wrong
-    either way (0 against any selection, or 1.0 when nothing is selected and the whole mask is
-    empty). Such a (view, category) pair is warned about (file, object index, category) and moved to
-    `skipped`, which every mean leaves out.
+    Degenerate ground truth: a polygon that paints no pixel (no point, or wholly outside the image)
+    means the category's mask lacks part of what was annotated, so its IoU would be wrong either way
+    (0 against any selection, or 1.0 when nothing is selected and the whole mask is empty). Such a
+    (view, category) pair is warned about (file, object index, category) and moved to `skipped`,
+    which every mean leaves out. A polygon of one or two points paints its point or line, as
+    LangSplat's cv2.fillPoly does, and is scored, with a warning.
     """
     masks: dict[str, np.ndarray] = {}
     skipped: dict[str, str] = {}
     boxes: dict[str, list[np.ndarray]] = {}
+    first_object: dict[str, int] = {}
     for k, (category, polygons, box) in enumerate(doc.objects):
         if box is None and any(len(p) for p in polygons):  # no 'bbox': the extent of its polygons
             points = np.concatenate([p for p in polygons if len(p)])
             box = np.concatenate([points.min(axis=0), points.max(axis=0)])
         if box is not None:
             boxes.setdefault(category, []).append(box)
+        first_object.setdefault(category, k)
         for j, poly in enumerate(polygons):
             m = polygon_mask(poly, doc.height, doc.width)
+            which = f"objects[{k}]" if len(polygons) == 1 else f"objects[{k}] polygon {j}"
+            if 0 < len(poly) < 3 and m.any():
+                log.warning("%s: %s (category %r) has %d point%s, not an area; scored as OpenCV's fill draws it (%s, %d px), "
+                            "as LangSplat's ground truth is", doc.path, which, category, len(poly), "" if len(poly) == 1 else "s",
+                            "a point" if len(poly) == 1 else "a line", int(m.sum()))
             if not m.any():
-                which = f"objects[{k}]" if len(polygons) == 1 else f"objects[{k}] polygon {j}"
-                why = "has fewer than 3 points" if len(poly) < 3 else f"lies wholly outside the {doc.width}x{doc.height} image"
+                why = "has no point" if len(poly) == 0 else f"lies wholly outside the {doc.width}x{doc.height} image"
                 log.warning("%s: %s (category %r) %s and covers no pixel; the (view %s, %r) pair is left out of the means",
                             doc.path, which, category, why, doc.name, category)
                 skipped.setdefault(category, f"{which} {why}")
@@ -314,7 +324,7 @@ def rasterise_lerf_document(doc: LerfDocument) -> AnnotatedView:
     for category in skipped:
         masks.pop(category, None)
     return AnnotatedView(doc.name, doc.width, doc.height, masks, doc.image, doc.path, skipped,
-                         {c: np.stack(b) for c, b in boxes.items() if c in masks})
+                         {c: np.stack(b) for c, b in boxes.items() if c in masks}, first_object)
 
 
 def load_lerf_view(path: str | Path) -> AnnotatedView:
