@@ -223,10 +223,12 @@ def test_register_outputs_may_not_replace_the_default_real_scene(tmp_path, capsy
     monkeypatch.setattr(register, "DEFAULT_REAL", default)
     before = digest(default)
     torch = ["bench", "register", "--skip-synthetic", "--engine", "torch", "--device", "cpu"]
-    for argv in (torch + ["--json", default], torch + ["--profile-views", "1", "--trace", default]):
-        code, err, _ = run_cli(argv, capsys)
-        assert code == 1 and "cannot write" in err and "--real (its default)" in err, err
-        assert digest(default) == before
+    code, err, _ = run_cli(torch + ["--profile-views", "1", "--trace", default], capsys)
+    assert code == 1 and "cannot write" in err and "--real (its default)" in err, err
+    assert digest(default) == before
+    code, err, _ = run_cli(torch + ["--json", default], capsys)  # a JSON output named .ply: refused by its name first (round 89c F4)
+    assert code == 2 and "this output is JSON text; a .ply name would hold it" in err, err
+    assert digest(default) == before
 
 
 def test_scale_json_may_not_replace_a_file_of_the_room(tmp_path, capsys, no_work):
@@ -234,10 +236,12 @@ def test_scale_json_may_not_replace_a_file_of_the_room(tmp_path, capsys, no_work
     (room / "features").mkdir(parents=True)
     for name in ("scene.ply", "transforms.json", "features/manifest.json"):
         (room / name).write_text(name)
-    for target, words in (("scene.ply", "--room's scene.ply"), ("transforms.json", "--room's transforms.json"),
-                          ("features/manifest.json", "features folder"), ("features/view_000_f.npy", "features folder")):
+    for target, words in (("transforms.json", "--room's transforms.json"), ("features/manifest.json", "features folder")):
         code, err, _ = run_cli(["bench", "scale", "--room", room, "--part", "compare", "--json", room / target], capsys)
         assert code == 1 and "cannot write" in err and words in err, (target, err)
+    for target in ("scene.ply", "features/view_000_f.npy"):  # JSON under these names is refused by the name first (round 89c F4)
+        code, err, _ = run_cli(["bench", "scale", "--room", room, "--part", "compare", "--json", room / target], capsys)
+        assert code == 2 and "this output is JSON text" in err, (target, err)
     assert all((room / name).read_text() == name for name in ("scene.ply", "transforms.json", "features/manifest.json"))
     code, err, _ = run_cli(["bench", "scale", "--room", tmp_path / "nothing", "--part", "rss"], capsys)
     assert code == 1 and "is not a written synthetic dataset" in err, err

@@ -45,8 +45,12 @@ def refused_unchanged(argv: list[str], target: Path, words: str, capsys) -> None
 
 
 def test_json_over_the_codebook_the_ply_names_is_refused(pq, capsys):
-    refused_unchanged(["eval", "iou", str(pq["ply"]), "--synthetic", str(pq["ds"]), "--json", str(pq["codebook"])], pq["codebook"],
-                      "the codebook pq.ply names", capsys)
+    """A codebook's name ends in .faiss, which a JSON output may not take (round 89c F4: refused by its name first)."""
+    before = pq["codebook"].read_bytes()
+    with pytest.raises(SystemExit) as exited:
+        main(["eval", "iou", str(pq["ply"]), "--synthetic", str(pq["ds"]), "--json", str(pq["codebook"])])
+    assert exited.value.code == 2 and "this output is JSON text; a .faiss name would hold it" in capsys.readouterr().err
+    assert pq["codebook"].read_bytes() == before
 
 
 @pytest.mark.parametrize("name", ["transforms.json", "features/manifest.json", "gt/synthetic.json"])
@@ -74,7 +78,11 @@ def test_outputs_over_a_clouds_labels_file_are_refused(pq, xyz, capsys):
     sidecar = xyz.with_name("c.xyz.labels.npy")
     refused_unchanged(["eval", "pseudolabels", str(pq["ds"] / "scene.ply"), "--points", str(xyz), "--out", str(sidecar)], sidecar,
                       "--points's labels file", capsys)
-    refused_unchanged(["eval", "iou", str(pq["ply"]), "--gt-points", str(xyz), "--json", str(sidecar)], sidecar, "--gt-points's labels file", capsys)
+    before = sidecar.read_bytes()
+    with pytest.raises(SystemExit) as exited:  # JSON under a .npy name: refused by its name first (round 89c F4)
+        main(["eval", "iou", str(pq["ply"]), "--gt-points", str(xyz), "--json", str(sidecar)])
+    assert exited.value.code == 2 and "this output is JSON text; a .npy name would hold it" in capsys.readouterr().err
+    assert sidecar.read_bytes() == before
 
 
 def test_no_assigned_gaussian_is_an_error_naming_the_file():

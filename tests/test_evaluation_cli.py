@@ -573,6 +573,118 @@ def scannet_argv(r: dict, scene_dir: Path, *extra: str) -> list[str]:
             "--label-names", str(r["ds"] / "gt" / "label_names.json"), "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), *extra]
 
 
+class ClosedPipe:
+    """A standard output whose reader went (`| head`): every write raises BrokenPipeError."""
+
+    def write(self, text: str) -> int:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def flush(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("old", [None, "OLD"], ids=["new", "replaced"])
+def test_eval_scannet_piped_to_head_keeps_the_files_it_wrote(registered, tmp_path, monkeypatch, old):
+    """Round 89c F1: `eval scannet ... | head` printed its table inside its outputs' set, so the closed pipe rolled
+    back the --json and --save-labels it had just written (or put the older ones back), exit 0."""
+    import sys
+
+    import drsplat.cli
+
+    scan = scannet_stand_in(registered)
+    js, labels = tmp_path / "p.json", tmp_path / "p.npy"
+    if old is not None:
+        js.write_text(old)
+    monkeypatch.setattr(drsplat.cli, "_silence_stdout", lambda: None)  # the fake stdout has no descriptor to point at /dev/null
+    monkeypatch.setattr(sys, "stdout", ClosedPipe())
+    assert main(scannet_argv(registered, scan, "--json", str(js), "--save-labels", str(labels))) == 0
+    monkeypatch.undo()
+    assert json.loads(js.read_text())["reports"] and np.load(labels).ndim == 1 and np.load(labels).size > 0
+
+
+def test_eval_lerf_refuses_a_near_plane_that_leaves_every_view_empty(registered, tmp_path, capsys):
+    """Round 89c F2: --near-plane 50 on a room under 2 units from its cameras drew nothing in any view and
+    printed mIoU 0.000, exit 0, where `register` refuses such a plane."""
+    r = registered
+    for plane in ("50", "1e308"):
+        assert main(lerf_argv(r, r["labels"], "--near-plane", plane, "--json", str(tmp_path / "x.json"))) == 2
+        err = capsys.readouterr().err
+        assert f"--near-plane {float(plane):g}: no Gaussian of " in err and "so every view would render nothing and score IoU 0" in err, err
+        assert "pass a smaller --near-plane (such as 0.01)" in err and "Traceback" not in err
+        assert not (tmp_path / "x.json").exists()
+    assert main(lerf_argv(r, r["labels"], "--near-plane", "0.05", "--no-progress")) == 0  # a plane the Gaussians lie beyond
+
+
+def test_eval_iou_voxel_grid_past_the_free_memory_is_a_usage_error(registered, capsys, monkeypatch):
+    """Round 89c F3: --voxel-resolution 2048, within the flag's range, grew to 20 GB on a room of 2,763 Gaussians and
+    ended in "out of memory: the input is larger than this machine can hold". Now one usage error before the grid,
+    naming the flag and a resolution that needs at most half of the memory free."""
+    import drsplat.memory
+    from drsplat.eval.metrics import VoxelSetup, voxel_iou_bytes
+    from drsplat.scene import load_ply
+
+    r = registered
+    monkeypatch.setattr(drsplat.memory, "available_memory", lambda: 200_000_000)
+    # a grid of 2048 on this room needs ~224 GB: the test is let run only where the check (not the allocation) ends it
+    scene = load_ply(r["ds"] / "scene.ply")
+    focus = np.load(r["ds"] / "gt" / "labels.npy") >= 0
+    assert voxel_iou_bytes(VoxelSetup.grid_of(scene, 2048, focus), 8) > 100e9
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--weighting", "voxel", "--voxel-resolution", "2048",
+                 "--task", "seg"]) == 2  # seg: without the check, its [8, V] grid fails to allocate at once instead of filling the memory
+    err = capsys.readouterr().err
+    assert "--voxel-resolution 2048: the voxel IoU's grid of " in err and "more than the 200 MB of memory free" in err, err
+    fits = int(err.split("; --voxel-resolution ")[1].split()[0])
+    assert voxel_iou_bytes(VoxelSetup.grid_of(scene, fits, focus), 8) <= 100_000_000 < voxel_iou_bytes(VoxelSetup.grid_of(scene, fits + 8, focus), 8)
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--weighting", "voxel", "--voxel-resolution", str(fits)]) == 0
+
+
+@pytest.mark.parametrize("argv", [
+    ["eval", "iou", "{ply}", "--synthetic", "{ds}", "--json", "{victim}"],
+    ["eval", "scannet", "{ply}", "--scene-dir", "{ds}", "--json", "{victim}"],
+    ["eval", "lerf", "{ply}", "--source", "{ds}", "--annotations", "{ds}", "--json", "{victim}"],
+    ["eval", "pseudolabels", "{scene}", "--points", "{cloud}", "--out", "{x}", "--names-out", "{victim}"],
+    ["bench", "budget", "--json", "{victim}"],
+    ["bench", "register", "--json", "{victim}"],
+    ["bench", "scale", "--json", "{victim}"],
+], ids=["eval-iou", "eval-scannet", "eval-lerf", "pseudolabels", "bench-budget", "bench-register", "bench-scale"])
+@pytest.mark.parametrize("suffix", [".ply", ".SPZ", ".npy"])
+def test_json_outputs_named_as_another_kind_of_file_are_refused(registered, tmp_path, capsys, argv, suffix):
+    """Round 89c F4: a JSON output named like a scene (`--json reg.ply`) replaced the registered PLY with JSON,
+    exit 0, while a .npy output of that name was refused; every JSON flag refuses such a name now, as the
+    command line is parsed (so no bench runs here, whatever the outcome)."""
+    from drsplat.cli import build_parser
+
+    r = registered
+    victim = tmp_path / f"victim{suffix}"
+    names = {"ply": r["ply"], "ds": r["ds"], "scene": r["ds"] / "scene.ply", "cloud": tmp_path / "cloud.ply", "x": tmp_path / "x.npy", "victim": victim}
+    with pytest.raises(SystemExit) as exited:
+        build_parser().parse_args([a.format(**{k: str(v) for k, v in names.items()}) for a in argv])
+    assert exited.value.code == 2
+    err = capsys.readouterr().err
+    assert f"'{victim}': this output is JSON text; a {suffix} name would hold it (name it .json)" in err, err
+
+
+def test_json_output_named_as_a_scene_leaves_the_scene_as_it_was(registered, tmp_path, capsys):
+    r = registered
+    victim = tmp_path / "victim.ply"
+    victim.write_bytes(r["ply"].read_bytes())
+    with pytest.raises(SystemExit) as exited:
+        main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--json", str(victim)])
+    assert exited.value.code == 2 and victim.read_bytes() == r["ply"].read_bytes()
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--json", str(tmp_path / "VICTIM.JSON")]) == 0  # its own suffix, any case
+    assert json.loads((tmp_path / "VICTIM.JSON").read_text())["reports"]
+
+
+def test_taus_may_start_below_zero_without_an_equals_sign(registered, capsys):
+    """Round 89c F5: `--taus -0.5:1:0.5` was read as an option ("expected one argument"); only --taus=-0.5:1:0.5 ran."""
+    r = registered
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--taus", "-0.5:1:0.5", "--curve"]) == 0
+    out = capsys.readouterr().out
+    assert "  -0.50 " in out and "   1.00 " in out
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--taus", "-0.5:x"]) == 2
+    assert "--taus must be START:STOP:STEP, got '-0.5:x'" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("flag", ["--save-labels", "--json"])
 def test_eval_scannet_refuses_to_write_over_the_labels_ply_in_scene_dir(registered, tmp_path, capsys, flag):
     """--save-labels or --json naming the labels PLY found inside --scene-dir replaced the ground truth."""
@@ -582,6 +694,12 @@ def test_eval_scannet_refuses_to_write_over_the_labels_ply_in_scene_dir(register
     shutil.copytree(scannet_stand_in(registered), scan)
     labels = scan / "scene0000_00_vh_clean_2.labels.ply"
     before = labels.read_bytes()
+    if flag == "--json":  # a JSON output named .ply is refused by its name first (round 89c F4)
+        with pytest.raises(SystemExit) as exited:
+            main(scannet_argv(registered, scan, flag, str(labels)))
+        assert exited.value.code == 2 and "this output is JSON text; a .ply name would hold it" in capsys.readouterr().err
+        assert labels.read_bytes() == before
+        return
     assert main(scannet_argv(registered, scan, flag, str(labels))) == 1
     err = capsys.readouterr().err
     assert f"{flag} is the same file as the input --scene-dir's labels PLY" in err and "Traceback" not in err

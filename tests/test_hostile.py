@@ -304,7 +304,6 @@ def overwrite_cases(world, tmp_path) -> list[tuple[list, list[Path]]]:
         (["bench", "query", "--official", reg, "--plot", reg], [reg]),
         (["bench", "register", "--skip-synthetic", "--real", reg, "--engine", "torch", "--device", "cpu", "--profile-views", "1",
           "--trace", reg], [reg]),
-        (["bench", "register", "--skip-synthetic", "--real", reg, "--engine", "torch", "--device", "cpu", "--json", reg], [reg]),
     ]
 
 
@@ -317,6 +316,9 @@ def test_no_command_writes_over_its_input(tmp_path, world, capsys):
         assert len(lines) == 1 and "cannot write" in lines[0], (argv, err)
         assert digest(*inputs, world["reg"]) == before, argv
     assert not (tmp_path / "s.ply").exists()
+    reg, before = world["reg"], digest(world["reg"])  # JSON over the scene: refused by its name, as the line is parsed (round 89c F4)
+    code, err = run_cli(["bench", "register", "--skip-synthetic", "--real", reg, "--engine", "torch", "--device", "cpu", "--json", reg], capsys)
+    assert code == 2 and "this output is JSON text; a .ply name would hold it" in err and digest(reg) == before, err
 
 
 def test_viewer_screenshot_and_export_refuse_the_scene(tmp_path, world, capsys):

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.bench.common import choice_list, format_table, guard_bench_outputs, machine_line
-from drsplat.commands.common import output_file
+from drsplat.commands.common import json_output_file
 from drsplat.memory import parse_size
 from drsplat.utils import write_bytes_atomic
 
@@ -69,7 +69,7 @@ NAMED_BUDGET = re.compile(r"give at least ([0-9.]+ ?[kMGT]?B)")
 def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("budget", help="peak RSS of `register --memory-budget` on inputs that stress one memory term (subprocesses)")
     p.add_argument("--cases", type=choice_list(CASES, "budget case"), default=",".join(DEFAULT_CASES), help=f"comma-separated cases from {', '.join(CASES)}")
-    p.add_argument("--json", type=output_file, default=None, help="also write the rows as JSON")
+    p.add_argument("--json", type=json_output_file, default=None, help="also write the rows as JSON")
     p.set_defaults(func=run)
 
 

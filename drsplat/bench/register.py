@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import nonneg_int, output_file, positive_int, topk_int, unit_fraction
+from drsplat.commands.common import json_output_file, nonneg_int, output_file, positive_int, topk_int, unit_fraction
 from drsplat.bench.common import format_table, gaussian_count, guard_bench_outputs, int_list, machine_line, peak_rss_mb, scene_file, view_size
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, MAX_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
@@ -77,7 +77,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--trace", type=output_file, default=None, metavar="FILE",
                    help="with --profile-views: also write the profiled views' chrome trace to FILE (gzipped for a .gz name; "
                         "open it in Perfetto or chrome://tracing)")
-    p.add_argument("--json", type=output_file, default=None, metavar="FILE",
+    p.add_argument("--json", type=json_output_file, default=None, metavar="FILE",
                    help="also write the engine's per-view figures (ops_per_view, host_syncs_per_view, ms_per_view, device, engine) as JSON")
     p.add_argument("--aggregate", choices=AGGREGATE_MODES, default=DEFAULT_AGGREGATE,
                    help=f"aggregation mode of every timed registration (default: {DEFAULT_AGGREGATE}; 'paper' is Dr. Splat's)")

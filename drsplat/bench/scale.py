@@ -29,7 +29,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from drsplat.bench.common import child_env, format_table, guard_bench_outputs, last_error_line, machine_line, positive_int_list
-from drsplat.commands.common import MAX_IMAGE_WIDTH, int_range, nonneg_float, output_file, positive_float, positive_int, size_value
+from drsplat.commands.common import MAX_IMAGE_WIDTH, int_range, json_output_file, nonneg_float, positive_float, positive_int, size_value
 from drsplat.errors import DrsplatError, InputError, UsageError
 from drsplat.memory import parse_size, peak_rss
 
@@ -78,7 +78,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--replay-blocks", type=positive_int, default=4)
     p.add_argument("--nodes", type=positive_int_list, default="1,8,64", help="GPU node counts of the projection")
     p.add_argument("--reducers-per-node", type=positive_int, default=1, help="reducer tasks per node in the projection (each holds one block)")
-    p.add_argument("--json", type=output_file, default=None, help="also write the compare runs as JSON records to this file (--part compare or all)")
+    p.add_argument("--json", type=json_output_file, default=None, help="also write the compare runs as JSON records to this file (--part compare or all)")
     p.set_defaults(func=run)
 
 

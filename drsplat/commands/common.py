@@ -66,9 +66,10 @@ def int_range(lo: int | None = None, hi: int | None = None) -> Callable[[str], i
 
 # what argparse reads as a negative number rather than an option: any float literal with a leading
 # minus, as float() reads it (argparse's own pattern takes -1 and -.5 but not -1e-3 or -inf), digits
-# grouped by underscores included (-1_000, as 1_000 is read)
+# grouped by underscores included (-1_000, as 1_000 is read), and a range that starts with one
+# (`--taus -0.5:1:0.1`, START:STOP:STEP; round 89c F5: "expected one argument"), whose type judges the rest
 _DIGITS = r"\d(?:_?\d)*"
-NEGATIVE_NUMBER = re.compile(rf"^-(?:(?:{_DIGITS}\.?(?:{_DIGITS})?|\.{_DIGITS})(?:[eE][-+]?{_DIGITS})?|inf(?:inity)?|nan)$", re.IGNORECASE)
+NEGATIVE_NUMBER = re.compile(rf"^-(?:(?:{_DIGITS}\.?(?:{_DIGITS})?|\.{_DIGITS})(?:[eE][-+]?{_DIGITS})?|inf(?:inity)?|nan)(?::[^:]*)*$", re.IGNORECASE)
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -214,7 +215,15 @@ def output_file(text: str) -> Path:
     return path_value(text)
 
 
-OTHER_FILE_SUFFIXES = (".ply", ".splat", ".spz", ".faiss", ".json", ".png", ".jpg", ".jpeg")  # what drsplat and 3DGS tools read by name
+KNOWN_FILE_SUFFIXES = (".ply", ".splat", ".spz", ".faiss", ".json", ".npy", ".npz", ".png", ".jpg", ".jpeg")  # what drsplat and 3DGS tools read by name
+
+
+def named_as_another_kind(path: Path | str | None, own_suffix: str) -> bool:
+    """Whether an output of kind `own_suffix` ('.npy', '.json') is named with another suffix that drsplat or a 3DGS tool
+    reads by name (KNOWN_FILE_SUFFIXES, in any case): what it holds would be read as that kind (a scene overwritten
+    by JSON, a .npy read as a PLY)."""
+    suffix = Path(path).suffix.lower() if path is not None else ""
+    return suffix in KNOWN_FILE_SUFFIXES and suffix != own_suffix
 
 
 def check_npy_name(flag: str, path: Path | None) -> None:
@@ -222,8 +231,18 @@ def check_npy_name(flag: str, path: Path | None) -> None:
     (`scores.ply`), since an array under it would be read as that type (round 54: `query --scores
     o.ply` wrote .npy bytes as o.ply; `--out o.npy` was refused). Called after the input guard, which
     says first when the name is one of the command's inputs."""
-    if path is not None and path.suffix.lower() in OTHER_FILE_SUFFIXES:
+    if named_as_another_kind(path, ".npy"):
         raise UsageError(f"{flag} {shown_path(path)}: this output is a .npy array; a {path.suffix} name would hold one (name it .npy)")
+
+
+def json_output_file(text: str) -> Path:
+    """argparse type of a JSON output (`output_file`), refused when named as another kind of file drsplat or a 3DGS
+    tool reads (`named_as_another_kind`; round 89c F4: `eval iou --json scene.ply` replaced a registered PLY with
+    JSON, exit 0, while a .npy output of that name was refused)."""
+    path = output_file(text)
+    if named_as_another_kind(path, ".json"):
+        raise argparse.ArgumentTypeError(f"{text!r}: this output is JSON text; a {path.suffix} name would hold it (name it .json)")
+    return path
 
 
 def threshold_value(text: str) -> str:

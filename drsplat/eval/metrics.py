@@ -423,9 +423,16 @@ class VoxelSetup:
     @classmethod
     def from_scene(cls, scene, resolution: int = 96, empty_threshold: float = 0.01, focus: np.ndarray | None = None) -> "VoxelSetup":
         """Grid over the Gaussians in `focus` ([N] bool, e.g. labelled or selected ones; all by default)."""
+        grid = cls.grid_of(scene, resolution, focus)
+        return cls(scene.means.astype(np.float64), scene.covariances().astype(np.float64), scene.opacities().astype(np.float64), grid,
+                   empty_threshold)
+
+    @staticmethod
+    def grid_of(scene, resolution: int = 96, focus: np.ndarray | None = None) -> VoxelGrid:
+        """The grid `from_scene` makes: `resolution` voxels on the longest side of the box of the Gaussians in `focus`."""
         means = scene.means.astype(np.float64)
-        grid = grid_for(means if focus is None else means[focus], resolution)
-        return cls(means, scene.covariances().astype(np.float64), scene.opacities().astype(np.float64), grid, empty_threshold)
+        return grid_for(means if focus is None else means[focus], resolution)
+
 
     def occupancy(self, selected: np.ndarray) -> np.ndarray:
         """[V] bool: voxels whose mass from the selected Gaussians ([N] bool) exceeds the threshold."""
@@ -435,6 +442,12 @@ class VoxelSetup:
     def label_field(self, labels: np.ndarray, num_labels: int) -> np.ndarray:
         """[V] voxel labels (−1 empty) from per-Gaussian labels [N] (−1 skipped)."""
         return voxel_labels(splat_mass(self.means, self.covs, self.opacities, labels, num_labels, self.grid), self.empty_threshold)
+
+
+def voxel_iou_bytes(grid: VoxelGrid, num_labels: int) -> int:
+    """Bytes the voxel IoU holds at its peak on `grid` for `num_labels` labels: the [C, V] float64 mass of every
+    label (`splat_mass`), its [V] total and argmax (`voxel_labels`), and the two [V] label fields compared."""
+    return grid.num_voxels * 8 * (max(1, num_labels) + 4)
 
 
 def voxel_localisation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: np.ndarray, threshold: float,
@@ -650,6 +663,6 @@ def format_curve(report: IoUReport, every: int = 5, whole_up_to: int = CURVE_WHO
 __all__ = [
     "IOU_THRESHOLDS", "IoUReport", "expand_scores", "tau_text", "match_gaussians", "VoxelGrid", "VoxelSetup", "argmax_labels", "evaluate_scene", "format_curve",
     "format_reports", "grid_for", "localisation_report", "scene_weights", "segmentation_iou", "segmentation_report",
-    "significance_weights", "splat_mass", "splat_mass_reference", "threshold_iou_curve", "voxel_labels",
+    "significance_weights", "splat_mass", "splat_mass_reference", "threshold_iou_curve", "voxel_iou_bytes", "voxel_labels",
     "voxel_localisation_report", "voxel_segmentation_report", "weighted_iou",
 ]
