@@ -34,7 +34,7 @@ from drsplat import _raster_kernels as kernels
 from drsplat._scene_kernels import bounded_rows_kernel, gather_rows
 from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
-from drsplat.scene import MAX_COORDINATE, MAX_SH_COEFFICIENT, SH_C0, SH_COEFFICIENTS, GaussianScene
+from drsplat.scene import MAX_COORDINATE, MAX_OPACITY_LOGIT, MAX_SH_COEFFICIENT, SH_C0, SH_COEFFICIENTS, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK, NEAR
 from drsplat.utils import compiled_here, spread_rows
 
@@ -389,8 +389,11 @@ def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) ->
     n = scene.num_gaussians
     finite = sh_in_range(scene)
     everything = float(np.finfo(np.float64).max)
+    # an infinite opacity logit is an opacity of 0 or 1, as the loader reads it (clamped to ±MAX_OPACITY_LOGIT): a scene
+    # given in memory renders it as one loaded from a file does (round 89d F2: +inf was dropped here, the most opaque value)
+    logits = np.clip(scene.opacity_logits, -MAX_OPACITY_LOGIT, MAX_OPACITY_LOGIT)
     for rows, limit in ((scene.means, MAX_COORDINATE), (scene.quats, everything), (scene.log_scales, everything),
-                        (scene.opacity_logits.reshape(n, 1), everything)):
+                        (logits.reshape(n, 1), everything)):
         bounded_rows_kernel(np.ascontiguousarray(rows), limit, False, finite)
     cov = scene.covariances()
     bounded_rows_kernel(cov.reshape(n, 9), everything, False, finite)

@@ -48,6 +48,7 @@ MAX_SH_COEFFICIENT = 1e30  # |SH coefficient| beyond this: a colour (16 terms, |
 EXTENT_OUTLIERS = 1e-3  # the share of the means on each side of each axis that `scene_extent` leaves out
 EXTENT_SAMPLE = 1 << 20  # at most this many means make `scene_extent` (every k-th one)
 EXTENT_TRIM_FROM = 100  # `scene_extent` of fewer means is their whole box
+COARSE_STEP_SHARE = 0.1  # positions rounded by more than this share of the median Gaussian's size: a finding (a warning)
 HUGE_SCALE_RATIO = 10.0  # a Gaussian whose largest scale is this many times the scene's extent is a finding (real scenes: < 0.2)
 SH_REST_COUNTS = {0: 0, 1: 9, 2: 24, 3: 45}
 ENCODING_CHECK_ROWS = 16  # fewer Gaussians may all look activated by chance (`activated_from`, `linear_floor_from`)
@@ -334,6 +335,7 @@ class LoadReport:
     spare_chunks: int = 0  # a compressed PLY's chunks past the ceil(rows / 256) its splats use (its vertex count may be smaller than the data)
     overflowing_scales: int = 0  # Gaussians whose exp(log scale) exceeds float32 (they render as infinite)
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
+    coarse_positions: tuple[float, float, float] | None = None  # (largest |coordinate|, float32's step there, median Gaussian size) where the step is coarse
     large_sh: int = 0  # Gaussians with an SH coefficient beyond MAX_SH_COEFFICIENT (their colour could overflow float32)
     huge_scales: int = 0  # Gaussians more than HUGE_SCALE_RATIO times the scene's extent
     scene_extent: float = 0.0  # the diagonal of the box of all but the outermost means on each axis (`scene_extent`)
@@ -372,8 +374,14 @@ class LoadReport:
         if self.spare_chunks:
             notes.append(self.spare_chunks_note())
         if self.far_means:
-            notes.append(f"{counted(self.far_means, 'Gaussian lies', 'Gaussians lie')} beyond {MAX_COORDINATE:.0e} from the origin on some axis: no view can "
-                         "see them (a units or export mix-up?), so they are not rendered and registration leaves them unassigned")
+            notes.append(f"{counted(self.far_means, 'Gaussian lies', 'Gaussians lie')} beyond {MAX_COORDINATE:.0e} from the origin on some axis, past the "
+                         "coordinates drsplat renders (a units or export mix-up?), so they are not rendered and registration leaves them unassigned")
+        if self.coarse_positions is not None:
+            reach, step, size = self.coarse_positions
+            notes.append(f"positions reach {reach:.3g} units from the origin, where float32 (which drsplat renders in; a file's double "
+                         f"positions are read so) holds a coordinate in steps of {step:.3g}: a Gaussian may lie up to {step / 2 / size:.2g} of "
+                         f"the median Gaussian's size ({size:.3g}) off its place, and fine detail is lost; move the capture near the origin "
+                         "(subtract one point from its positions and from its cameras' positions) before exporting it")
         if self.large_sh:
             notes.append(f"{counted(self.large_sh, 'Gaussian has', 'Gaussians have')} an SH coefficient beyond {MAX_SH_COEFFICIENT:.0e}: their colour could "
                          "overflow float32, so they are not rendered and registration leaves them unassigned")
@@ -976,9 +984,28 @@ class GeometryFindings:
         report.huge_scales = (count_rows_beyond(largest[:, None], float(np.log(HUGE_SCALE_RATIO * report.scene_extent)), signed=True)
                               if report.scene_extent > 0.0 else 0)
         report.far_means, report.large_sh, report.overflowing_scales = self.far_means, self.large_sh, self.overflowing_scales
+        report.coarse_positions = float32_coarse_positions(sampled, largest[::self.step])
         report.activated_opacities = activated_from(self.opacities, self.opacity_strays)
         report.linear_scale_floor = linear_floor_from(self.scales, self.scale_columns, report.scene_extent)
         return report
+
+
+def float32_coarse_positions(means: np.ndarray, largest_log_scales: np.ndarray) -> tuple[float, float, float] | None:
+    """(largest |coordinate|, float32's step there, median Gaussian size) when float32 rounds positions by more
+    than COARSE_STEP_SHARE of the median Gaussian's largest scale, else None (round 89d F1: a georeferenced
+    capture 1e7 units out, stored as double, registered as if rounded to whole units, without a word).
+    means: [S, 3] a sample of the kept means (the largest |coordinate| decides the step, a power of two, so a
+    sample's misses it by a factor 2 at most); largest_log_scales: [S'] their largest log scales."""
+    with np.errstate(invalid="ignore"):
+        finite = means[np.isfinite(means).all(axis=1) & (np.abs(means) <= MAX_COORDINATE).all(axis=1)]
+        logs = largest_log_scales[np.isfinite(largest_log_scales)]
+    if finite.shape[0] == 0 or logs.shape[0] == 0:
+        return None
+    reach = float(np.abs(finite).max())
+    step = float(np.spacing(np.float32(reach)))
+    with np.errstate(over="ignore"):
+        size = float(np.exp(np.float64(np.median(logs))))
+    return (reach, step, size) if step / 2 > COARSE_STEP_SHARE * size else None
 
 
 def _read_vertex_rows(path: str | Path) -> tuple[Path, PlyHeader, dict[str, StoredRows]]:

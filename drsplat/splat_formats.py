@@ -63,7 +63,7 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import (COARSE_EXTENT_SHARE, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, check_element_sizes, compressed_ply_bytes,
+from drsplat.scene import (COARSE_EXTENT_SHARE, COARSE_STEP_SHARE, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, check_element_sizes, compressed_ply_bytes,
                            dc_from_rgb, load_ply_report, opacity_logits, read_ply_header, save_ply, starts_as_ply)
 from drsplat.utils import unreachable_cause, write_bytes_atomic
 
@@ -946,7 +946,6 @@ def save_spz(scene: GaussianScene, path: str | Path, version: int = SPZ_WRITE_VE
     write_bytes_atomic(path, data)
 
 
-COARSE_STEP_SHARE = 0.1  # positions rounded by more than this share of the median Gaussian's size: a warning, not a note
 
 
 def _say_coarse_positions(scene: GaussianScene, path: Path, fractional_bits: int) -> None:

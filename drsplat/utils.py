@@ -716,10 +716,17 @@ MAX_NPY_HEADER_BYTES = 1 << 16
 
 def read_npy_header(f) -> tuple[tuple[int, ...], np.dtype]:
     """(shape, dtype) from the .npy header at the position of the binary file object `f` (left at
-    the data); numpy's errors for a bad magic or header pass through (its text is not trusted)."""
-    version = np.lib.format.read_magic(f)
-    reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-    shape, _fortran, dtype = reader(f, max_header_size=MAX_NPY_HEADER_BYTES)
+    the data). A bad magic or header is one ValueError naming no byte of it: numpy parses the header
+    with ast and tokenize, whose errors quote it (round 89b F4) or are of kinds no caller expects
+    (tokenize.TokenError: a snapshot's damaged header was a traceback); OSError passes through."""
+    try:
+        version = np.lib.format.read_magic(f)
+        reader = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, _fortran, dtype = reader(f, max_header_size=MAX_NPY_HEADER_BYTES)
+    except OSError:
+        raise
+    except Exception as exc:
+        raise ValueError(f"not a readable .npy header ({type(exc).__name__})") from None
     return shape, dtype
 
 

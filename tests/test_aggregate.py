@@ -719,19 +719,24 @@ def test_view_hook_survives_pickling(hard_tiny):
         np.testing.assert_array_equal(getattr(s1, name), getattr(s2, name))
 
 
-@pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views"])
+@pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views", "binary header", "missing"])
 def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_path, damage, caplog):
     """A damaged or foreign `.aggregate.npz` beside the log: one warning, the run starts over and equals a
-    fresh one (its headers are checked before anything is read, so a huge shape cannot allocate)."""
+    fresh one (its headers are checked before anything is read, so a huge shape cannot allocate). The warning
+    names the cause, never the damaged bytes (round 89b F4: numpy's parse error quoted them into the terminal);
+    a snapshot missing where one was due is said to be missing (round 89b F3: its views "predate" it)."""
     import io
     import zipfile
 
     scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
     fresh = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), show_progress=False)
     ckpt, token = tmp_path / "run.log", CancelToken()
-    with pytest.raises(Cancelled):
+    with pytest.raises(Cancelled), caplog.at_level("WARNING"):
         register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt, checkpoint_every=2, cancel=token, on_progress=lambda done, total: token.cancel() if done == 5 else None, show_progress=False)
     snapshot = aggregate_stats_path(ckpt)
+    (kept,) = [r.getMessage() for r in caplog.records if "kept the registration checkpoint" in r.getMessage()]
+    assert f"its statistics in {snapshot.name})" in kept and "delete it and the files it names to start over" in kept  # both files named
+    caplog.clear()
     with np.load(snapshot) as data:
         arrays = {k: data[k] for k in data.files}
     if damage == "not a zip":
@@ -740,6 +745,15 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
         np.savez(snapshot.open("wb"), **{**arrays, "views": np.arange(3)})
     elif damage == "negative views":
         np.savez(snapshot.open("wb"), **{**arrays, "views": np.int64(-3)})
+    elif damage == "missing":
+        snapshot.unlink()
+    elif damage == "binary header":
+        with zipfile.ZipFile(snapshot, "w") as archive:
+            for name, value in arrays.items():
+                buf = io.BytesIO()
+                np.save(buf, value)
+                data = buf.getvalue()
+                archive.writestr(name + ".npy", data[:10] + bytes(range(0xd0, 0xff)) + data[10 + 0x2f:] if name == "peak" else data)
     else:
         header = io.BytesIO()
         np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)})
@@ -749,10 +763,18 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
                 np.save(buf, value)
                 archive.writestr(name + ".npy", header.getvalue() if name == "peak" else buf.getvalue())
     with caplog.at_level("WARNING"):
-        resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt, show_progress=False)
+        resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt,
+                                    checkpoint_every=2, show_progress=False)
     assert resumed.resumed_views == 0 and resumed.num_rejected == fresh.num_rejected > 0
     np.testing.assert_array_equal(resumed.weights, fresh.weights)
-    assert sum("aggregate.npz is unreadable" in r.getMessage() for r in caplog.records) == 1
+    if damage == "missing":
+        assert [r.getMessage().split(": ", 1)[1] for r in caplog.records if "is missing" in r.getMessage()] == [
+            f"its statistics snapshot {snapshot.name} is missing; its 5 views are redone"]
+        return
+    (message,) = [r.getMessage() for r in caplog.records if "aggregate.npz is unreadable" in r.getMessage()]
+    assert message.isascii(), message
+    if damage == "binary header":  # numpy's tokenize.TokenError was a traceback; its SyntaxError quoted the bytes
+        assert "(its contents are damaged); the aggregation statistics restart" in message, message
 
 
 def test_ablation_grid_of_mask_sources_and_corruptions(tmp_path):

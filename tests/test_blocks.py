@@ -953,3 +953,18 @@ def test_a_run_in_one_block_logs_its_estimate_too(tiny, inputs, caplog):
         register_features(scene, cams, tiny / "features", RegisterOptions(topk=5, aggregate="paper"), show_progress=False)
     said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("estimated peak memory")]
     assert len(said) == 1 and re.fullmatch(r"estimated peak memory: [0-9.]+ [kMG]B, in one block", said[0]), said  # the size: the process's
+
+
+def test_a_damaged_first_record_is_said_to_start_from_scratch(tiny, inputs, tmp_path, caplog):
+    """Round 89b F2: a damaged first record was said as "resuming from the 0 views before it"; the run starts over,
+    and says so, to the same features."""
+    scene, cams = inputs
+    full = register_features(scene, cams, tiny / "features", LOG_ONLY, show_progress=False)
+    ckpt = tmp_path / "run.log"
+    _cancelled_log(tiny, inputs, ckpt, 3)
+    _rewrite_record_meta(ckpt, 0, lambda m: {**m, "pairs": "many"})
+    with caplog.at_level(logging.WARNING):
+        resumed = register_features(scene, cams, tiny / "features", LOG_ONLY, checkpoint=ckpt, show_progress=False)
+    assert "record 1 is damaged (its checksum, length or meta does not match); starting from scratch" in caplog.text, caplog.text
+    assert "0 views" not in caplog.text and resumed.resumed_views == 0
+    np.testing.assert_array_equal(resumed.features, full.features)

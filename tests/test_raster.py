@@ -288,6 +288,31 @@ def test_nonfinite_gaussians_are_dropped_and_counted():
     np.testing.assert_allclose(out.rgb, clean.rgb, atol=1e-6)
 
 
+def test_infinite_opacity_logits_render_as_a_loaded_file_reads_them(tmp_path):
+    """Round 89d F2: a +inf opacity logit (the most opaque value) was dropped as non-finite by `prepare_scene`, while
+    the loader reads it as a logit of +30; the same scene registered 2,601 or 2,650 Gaussians whether given in memory
+    or through a file. ±inf now render as opacity 1 and 0 in both; a NaN logit is still not rendered."""
+    from drsplat.raster_torch import rasterize as rasterize_torch
+    from drsplat.scene import save_ply
+
+    scene = random_scene(np.random.default_rng(5), 150)
+    logits = scene.opacity_logits.copy()
+    logits[:10], logits[10:15], logits[15] = np.inf, -np.inf, np.nan
+    given = dataclasses.replace(scene, opacity_logits=logits)
+    save_ply(given, tmp_path / "s.ply")
+    loaded = load_ply(tmp_path / "s.ply")  # +-inf clamped to +-30 by the loader (a finding); NaN dropped
+    cam = front_camera(32, 24)
+    with np.errstate(all="ignore"):
+        out = rasterize(given, cam, 8)
+        torch_out = rasterize_torch(given, cam, 8)
+    assert out.num_nonfinite == 1  # the NaN only
+    ref = rasterize(loaded, cam, 8)
+    np.testing.assert_array_equal(out.weights, ref.weights)
+    np.testing.assert_array_equal(np.where(out.ids > 15, out.ids - 1, out.ids), ref.ids)  # the NaN row (15) is not in the loaded scene
+    np.testing.assert_array_equal(out.ids, torch_out.ids)
+    assert np.isin(np.arange(10), out.ids).any()  # the fully opaque ones are drawn
+
+
 def test_colours_and_depths_beyond_float32_are_not_rendered_and_are_counted():
     """Was (a numerical probe, 2026-12-01): SH coefficients of 3e38 (finite) gave inf colours, NaN
     across whole tiles on the torch path, and a mean at 3.4e38 an inf depth, counted nowhere. Now a

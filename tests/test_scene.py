@@ -1078,3 +1078,35 @@ def test_the_scene_balls_kernels_agree_with_the_numpy_reference(case):
     got, want = scene_ball(means), scene_ball_reference(means)
     np.testing.assert_allclose(got[0], want[0], rtol=1e-12, atol=1e-12)
     assert got[1] == want[1]
+
+
+@pytest.mark.parametrize("double", [False, True], ids=["float", "double"])
+def test_positions_far_from_the_origin_for_their_gaussians_are_a_finding(tmp_path, double):
+    """Round 89d F1: a capture 1e7 units out (georeferenced; stored as double, which holds it exactly) was read as
+    float32, so its 0.1-unit Gaussians registered as if rounded to whole units, with "findings none". The load
+    names the step and the median Gaussian's size where the step is over a tenth of it; 1e5 units out it is not."""
+    from drsplat.testing import random_scene
+
+    base = random_scene(np.random.default_rng(0), 500, log_scale=(-2.5, -2.0))  # Gaussians 0.08-0.14 across
+    for shift, coarse in ((0.0, False), (1e5, False), (1e6, True), (1e7, True)):
+        path = tmp_path / f"s{shift:g}.ply"
+        vertices = scene_to_vertices(dataclasses.replace(base, means=(base.means.astype(np.float64) + shift).astype(np.float32)))
+        if double:  # the positions as a georeferencing tool writes them: double columns, exact
+            wide = np.dtype([(n, "<f8" if n in ("x", "y", "z") else vertices.dtype[n]) for n in vertices.dtype.names])
+            widened = np.empty(len(vertices), wide)
+            for n in vertices.dtype.names:
+                widened[n] = vertices[n]
+            for k, n in enumerate("xyz"):
+                widened[n] = base.means[:, k].astype(np.float64) + shift
+            from plyfile import PlyData, PlyElement
+
+            PlyData([PlyElement.describe(widened, "vertex")]).write(str(path))
+        else:
+            save_ply(dataclasses.replace(base, means=(base.means.astype(np.float64) + shift).astype(np.float32)), path)
+        _, report = load_ply_report(path)
+        notes = [n for n in report.findings() if "holds a coordinate in steps of" in n]
+        assert bool(notes) == coarse, (shift, report.findings())
+        if coarse:
+            reach, step, size = report.coarse_positions
+            assert step == float(np.spacing(np.float32(reach))) and 0.08 < size < 0.14 and step / 2 > 0.1 * size
+            assert f"positions reach {reach:.3g} units from the origin" in notes[0] and "move the capture near the origin" in notes[0]

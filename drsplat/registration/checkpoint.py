@@ -37,7 +37,7 @@ from drsplat.errors import DrsplatError, OutputError
 from drsplat.features import format as featurefiles
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, shard_file, shards_folder, views_before
+from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, resuming_from, shard_file, shards_folder
 from drsplat.raster import NEAR, sh_in_range
 from drsplat.scene import GaussianScene, counted
 from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, protected_mode, read_npy_header,
@@ -383,7 +383,8 @@ class Checkpoint:
         """'PATH (N of M views, S)': what a stopped run leaves behind."""
         size = self.nbytes if self.path.exists() else 0
         shards = f", with the workers' shards in {self.shards_dir.name}" if self.shards_dir is not None else ""
-        return f"{self.path} ({self.done} of {self.total} views, {format_size(size)}{shards})"
+        snapshot = f", its statistics in {self.stats_path.name}" if self.stats_path is not None and self.stats_path.exists() else ""
+        return f"{self.path} ({self.done} of {self.total} views, {format_size(size)}{shards}{snapshot})"
 
     def leave(self, why: str) -> bool:
         """A run ended early (`why`): keep a log that holds views, with one message saying what it is;
@@ -409,8 +410,9 @@ class Checkpoint:
                 return False
             # the same words for `drsplat register` and the viewer's Register button (round 71b F5: "the same command" there)
             part = "" if resumable == self.done else f" (its first {resumable}: the aggregation statistics were last saved there)"
+            beside = self.shards_dir is not None or (self.stats_path is not None and self.stats_path.exists())
             log.warning("%s: kept the registration checkpoint %s; a registration into the same output with the same settings "
-                        "resumes from it%s, delete it to start over", why, self.describe(), part)
+                        "resumes from it%s, delete %s to start over", why, self.describe(), part, "it and the files it names" if beside else "it")
             return True
         finally:
             self._release()
@@ -421,8 +423,7 @@ class Checkpoint:
             return
         for i, record in enumerate(self.log.records):
             if record.meta.get("stamp") != feature_stamp(self.features_dir, record.name):
-                log.warning("%s: the feature files of view %s changed since it was logged; resuming from the %s before it",
-                            self.path, record.name, views_before(i))
+                log.warning("%s: the feature files of view %s changed since it was logged; %s", self.path, record.name, resuming_from(i))
                 self.log.truncate(i)
                 return
 
@@ -436,7 +437,7 @@ class Checkpoint:
             for i, record in enumerate(self.log.records):
                 problem = _shard_record_problem(self.path, record.meta.get("shard"), files)
                 if problem is not None:
-                    log.warning("%s: view %s %s; resuming from the %s before it", self.path, record.name, problem, views_before(i))
+                    log.warning("%s: view %s %s; %s", self.path, record.name, problem, resuming_from(i))
                     self.log.truncate(i)
                     break
         finally:
@@ -456,11 +457,17 @@ class Checkpoint:
         try:
             views, arrays = _load_snapshot(self.stats_path, self.aggregator.state())
         except FileNotFoundError:  # stopped before the first snapshot: the normal case of an early kill
-            log.info("%s: its %d views predate the first statistics snapshot (every %d views); they are redone", self.path,
-                     len(self.log.records), self.every)
+            if len(self.log.records) < self.every:
+                log.info("%s: its %d views predate the first statistics snapshot (every %d views); they are redone", self.path,
+                         len(self.log.records), self.every)
+            else:  # a snapshot was due, so it went (round 89b F3: blamed on timing)
+                log.warning("%s: its statistics snapshot %s is missing; its %s are redone", self.path, self.stats_path.name,
+                            counted(len(self.log.records), "view", "views"))
             views, arrays = 0, {}
         except (OSError, ValueError, KeyError, EOFError, SyntaxError, zipfile.BadZipFile) as exc:
-            log.warning("%s is unreadable (%s); the aggregation statistics restart with the views", self.stats_path, exc)
+            # the reader's own words quote the damaged bytes (round 89b F4): the cause is named, never the contents
+            why = os_error_cause(exc) if isinstance(exc, OSError) else "its contents are damaged"
+            log.warning("%s is unreadable (%s); the aggregation statistics restart with the views", self.stats_path, why)
             views, arrays = 0, {}
         if views > len(self.log.records):  # the log was cut shorter than the snapshot: start over, and say so (round 72b F1:
             log.warning("%s: its statistics snapshot covers %d views, more than the %d it keeps now; the aggregation statistics "  # "resuming

@@ -158,9 +158,10 @@ class ViewPairs:
         return int(self.feats.nbytes + self.gaussians.nbytes + self.masks.nbytes + self.weights.nbytes + self.used.nbytes + stats)
 
 
-def views_before(count: int) -> str:
-    """"1 view" or "N views": how many logged views a resume keeps."""
-    return f"{count} view" + ("" if count == 1 else "s")
+def resuming_from(count: int) -> str:
+    """What a resume that keeps the first `count` logged views does: "resuming from the N views before it", or
+    "starting from scratch" when it keeps none (round 89b F2: "resuming from the 0 views before it")."""
+    return f"resuming from the {count} view{'' if count == 1 else 's'} before it" if count else "starting from scratch"
 
 
 def chunk_grouping(ids: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
@@ -585,9 +586,9 @@ def _valid_records(path: Path, params: dict) -> list[LogRecord] | None:
                 return None
             records, end = _scan(f, size)
             if end < size:
-                log.warning("%s: %s; resuming from the %s before it", path,
+                log.warning("%s: %s; %s", path,
                             "the last view's record is incomplete (the run stopped while writing it: killed, or its disk full)" if _is_torn_tail(f, end, size)
-                            else f"record {len(records) + 1} is damaged (its checksum, length or meta does not match)", views_before(len(records)))
+                            else f"record {len(records) + 1} is damaged (its checksum, length or meta does not match)", resuming_from(len(records)))
                 f.truncate(end)
             return records
     except OSError as exc:  # not the log's contents: starting over would truncate a log that may be whole
