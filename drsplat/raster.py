@@ -34,7 +34,7 @@ from drsplat import _raster_kernels as kernels
 from drsplat._scene_kernels import bounded_rows_kernel, gather_rows
 from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
-from drsplat.scene import MAX_COORDINATE, MAX_OPACITY_LOGIT, MAX_SH_COEFFICIENT, SH_C0, SH_COEFFICIENTS, GaussianScene
+from drsplat.scene import MAX_COORDINATE, MAX_LOG_SCALE, MAX_OPACITY_LOGIT, MAX_SH_COEFFICIENT, SH_C0, SH_COEFFICIENTS, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK, NEAR
 from drsplat.utils import compiled_here, spread_rows
 
@@ -373,7 +373,15 @@ def widened_scene(scene: GaussianScene) -> GaussianScene:
     return dataclasses.replace(scene, **{name: np.asarray(getattr(scene, name), np.float32) for name in narrow})
 
 
-def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) -> PreparedScene:
+def warn_unrendered(prepared: PreparedScene) -> None:
+    """The one warning that `prepared` flags Gaussians it does not render, with what makes a Gaussian unusable."""
+    if prepared.num_nonfinite:
+        log.warning("%d of %d Gaussians have non-finite attributes (a NaN or infinite value, a log scale above %.1f whose scale "
+                    "overflows float32, a mean beyond %.0e, or an SH coefficient beyond %.0e) and are not rendered",
+                    prepared.num_nonfinite, prepared.num_gaussians, MAX_LOG_SCALE, MAX_COORDINATE, MAX_SH_COEFFICIENT)
+
+
+def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True, warn: bool = True) -> PreparedScene:
     """The view-independent arrays of `scene`; unusable Gaussians are flagged (`finite`) and counted.
 
     A Gaussian is usable when its mean, quaternion, log scales, opacity logit, SH coefficients and
@@ -381,7 +389,8 @@ def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) ->
     camera is farther out, and a camera z past float32's range would be an infinite depth) and its
     SH coefficients within MAX_SH_COEFFICIENT (a colour past float32's range would be infinite).
     with_sh=False: the SH are still checked, not copied (sh becomes [N, 0, 3]: a registration
-    renders no colour).
+    renders no colour). warn: say how many are flagged (`warn_unrendered`); a caller that prepares a
+    scene in parts, or a sample of it, says it once itself (round 89d F4: three times a registration).
     """
     if isinstance(scene, PreparedScene):
         return scene
@@ -402,9 +411,8 @@ def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True) ->
     opacities = np.where(finite, scene.opacities(), 0.0).astype(np.float32)
     sh = np.where(finite[:, None, None], scene.sh, 0.0).astype(np.float32) if with_sh else np.zeros((n, 0, 3), np.float32)
     prepared = PreparedScene(means=means, covariances=cov, opacities=opacities, sh=sh, finite=finite)
-    if prepared.num_nonfinite:
-        log.warning("%d of %d Gaussians have non-finite attributes (or a mean beyond %.0e, or an SH coefficient beyond %.0e) and are "
-                    "not rendered", prepared.num_nonfinite, prepared.num_gaussians, MAX_COORDINATE, MAX_SH_COEFFICIENT)
+    if warn:
+        warn_unrendered(prepared)
     return prepared
 
 

@@ -968,3 +968,24 @@ def test_a_damaged_first_record_is_said_to_start_from_scratch(tiny, inputs, tmp_
     assert "record 1 is damaged (its checksum, length or meta does not match); starting from scratch" in caplog.text, caplog.text
     assert "0 views" not in caplog.text and resumed.resumed_views == 0
     np.testing.assert_array_equal(resumed.features, full.features)
+
+
+def test_gaussians_left_unrendered_are_said_once_a_registration_with_their_cause(tiny, inputs, tmp_path, capsys):
+    """Round 89d F4: ten Gaussians whose log scale overflows float32 were said three times by `register` (the frame
+    check's sample, the fit stage's geometry, once per chunk of it), as "non-finite attributes" without that cause."""
+    import dataclasses
+
+    from drsplat.cli import main
+    from drsplat.scene import save_ply
+
+    scene, _ = inputs
+    log_scales = scene.log_scales.copy()
+    log_scales[:10, 0] = 100.0
+    save_ply(dataclasses.replace(scene, log_scales=log_scales), tmp_path / "big.ply")
+    assert main(["register", str(tmp_path / "big.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
+                 str(tmp_path / "reg.ply"), "--topk", "10", "--no-progress"]) == 0
+    said = [line for line in capsys.readouterr().err.splitlines() if "are not rendered" in line]
+    assert len(said) == 1 and f"10 of {scene.num_gaussians} Gaussians have non-finite attributes" in said[0], said
+    assert "a log scale above 88.7 whose scale overflows float32" in said[0]
+    registered = load_ply(tmp_path / "reg.ply")
+    assert registered.num_gaussians < scene.num_gaussians  # the ten, never rendered, are pruned with the other unseen ones

@@ -25,7 +25,7 @@ from drsplat.errors import UsageError
 from drsplat.memory import peak_rss
 from drsplat.defaults import ENGINES
 from drsplat.raster import ENGINES as RASTER_ENGINES
-from drsplat.raster import NEAR, PreparedScene, RasterOutput, get_engine, prepare_scene, subset_geometry
+from drsplat.raster import NEAR, PreparedScene, RasterOutput, get_engine, prepare_scene, subset_geometry, warn_unrendered
 from drsplat.registration.aggregate import ViewHook, mode_stages
 from drsplat.registration.coalesce import Coalescer
 from drsplat.registration.culling import SpatialIndex, remap_ids
@@ -124,11 +124,13 @@ def prepare_geometry(scene: GaussianScene, chunk: int = 1 << 20) -> PreparedScen
     opacities = np.empty(n, np.float32)
     finite = np.empty(n, bool)
     for start in range(0, n, chunk):
-        part = prepare_scene(scene.subset(slice(start, start + chunk)), with_sh=False)
+        part = prepare_scene(scene.subset(slice(start, start + chunk)), with_sh=False, warn=False)
         stop = start + part.num_gaussians
         means[start:stop], covs[start:stop] = part.means, part.covariances
         opacities[start:stop], finite[start:stop] = part.opacities, part.finite
-    return PreparedScene(means=means, covariances=covs, opacities=opacities, sh=np.zeros((n, 0, 3), np.float32), finite=finite)
+    prepared = PreparedScene(means=means, covariances=covs, opacities=opacities, sh=np.zeros((n, 0, 3), np.float32), finite=finite)
+    warn_unrendered(prepared)  # once for the scene, not once a chunk
+    return prepared
 
 
 class ViewComputer:
