@@ -798,3 +798,21 @@ def test_ablation_grid_of_mask_sources_and_corruptions(tmp_path):
                                "clean,mislabel10", "--out-dir", str(tmp_path / "y")], capture_output=True, text=True, check=False)
     assert jittered.returncode == 2 and "mislabel10" in jittered.stderr and "Traceback" not in jittered.stderr
     assert not (tmp_path / "y" / "datasets").exists()
+
+
+def test_a_first_snapshot_never_written_is_not_called_missing(hard_tiny, tmp_path, caplog):
+    """Round 90a F3: a run killed while it wrote its first statistics snapshot (the log holding exactly `every` views,
+    no snapshot) was told on the rerun that the snapshot "is missing"; it is the early kill's case: its views predate it."""
+    scene, cams = load_ply(hard_tiny / "scene.ply"), load_cameras(hard_tiny)
+    ckpt, token = tmp_path / "run.log", CancelToken()
+    with pytest.raises(Cancelled):
+        register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt, checkpoint_every=2,
+                          cancel=token, on_progress=lambda done, total: token.cancel() if done == 2 else None, show_progress=False)
+    aggregate_stats_path(ckpt).unlink(missing_ok=True)  # as if killed while writing it
+    with caplog.at_level("INFO", logger="drsplat.registration.checkpoint"):
+        resumed = register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=10, aggregate=REJECT), checkpoint=ckpt,
+                                    checkpoint_every=2, show_progress=False)
+    messages = [r.getMessage() for r in caplog.records]
+    assert not any("is missing" in m for m in messages), messages
+    assert any("its 2 views predate the first statistics snapshot (every 2 views); they are redone" in m for m in messages), messages
+    assert resumed.resumed_views == 0

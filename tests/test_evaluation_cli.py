@@ -636,6 +636,15 @@ def test_eval_iou_voxel_grid_past_the_free_memory_is_a_usage_error(registered, c
     fits = int(err.split("; --voxel-resolution ")[1].split()[0])
     assert voxel_iou_bytes(VoxelSetup.grid_of(scene, fits, focus), 8) <= 100_000_000 < voxel_iou_bytes(VoxelSetup.grid_of(scene, fits + 8, focus), 8)
     assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--weighting", "voxel", "--voxel-resolution", str(fits)]) == 0
+    # the localisation alone holds one label's grid at a time (round 90a F2: charged the segmentation's 8 labels + 4)
+    loc = 2 * fits
+    assert voxel_iou_bytes(VoxelSetup.grid_of(scene, loc, focus), 8, segmentation=False) <= 200_000_000 < voxel_iou_bytes(VoxelSetup.grid_of(scene, loc, focus), 8)
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--weighting", "voxel", "--voxel-resolution", str(loc),
+                 "--task", "loc"]) == 0
+    capsys.readouterr()
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--weighting", "voxel", "--voxel-resolution", "2048",
+                 "--task", "loc"]) == 2
+    assert "for one label at a time needs about" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("argv", [
@@ -645,8 +654,9 @@ def test_eval_iou_voxel_grid_past_the_free_memory_is_a_usage_error(registered, c
     ["eval", "pseudolabels", "{scene}", "--points", "{cloud}", "--out", "{x}", "--names-out", "{victim}"],
     ["bench", "budget", "--json", "{victim}"],
     ["bench", "register", "--json", "{victim}"],
+    ["bench", "register", "--engine", "torch", "--profile-views", "1", "--trace", "{victim}"],
     ["bench", "scale", "--json", "{victim}"],
-], ids=["eval-iou", "eval-scannet", "eval-lerf", "pseudolabels", "bench-budget", "bench-register", "bench-scale"])
+], ids=["eval-iou", "eval-scannet", "eval-lerf", "pseudolabels", "bench-budget", "bench-register", "bench-register-trace", "bench-scale"])
 @pytest.mark.parametrize("suffix", [".ply", ".SPZ", ".npy"])
 def test_json_outputs_named_as_another_kind_of_file_are_refused(registered, tmp_path, capsys, argv, suffix):
     """Round 89c F4: a JSON output named like a scene (`--json reg.ply`) replaced the registered PLY with JSON,

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.commands.common import json_output_file, nonneg_int, output_file, positive_int, topk_int, unit_fraction
+from drsplat.commands.common import json_output_file, nonneg_int, positive_int, topk_int, unit_fraction
 from drsplat.bench.common import format_table, gaussian_count, guard_bench_outputs, int_list, machine_line, peak_rss_mb, scene_file, view_size
 from drsplat.device import add_device_arguments, resolve_compute
 from drsplat.defaults import AGGREGATE_MODES, DEFAULT_AGGREGATE, DEFAULT_TOPK, MAX_TOPK, ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
@@ -74,7 +74,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--profile-views", type=nonneg_int, default=0, metavar="N",
                    help="torch engine: N more views under torch's profiler, and a table of where their time went, by device "
                         "time on CUDA (default: 0, none)")
-    p.add_argument("--trace", type=output_file, default=None, metavar="FILE",
+    p.add_argument("--trace", type=json_output_file, default=None, metavar="FILE",
                    help="with --profile-views: also write the profiled views' chrome trace to FILE (gzipped for a .gz name; "
                         "open it in Perfetto or chrome://tracing)")
     p.add_argument("--json", type=json_output_file, default=None, metavar="FILE",

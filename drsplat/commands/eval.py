@@ -503,7 +503,7 @@ def _evaluate_and_write(args, scene, field, gt: np.ndarray, names: list[str], in
     weightings, taus = parse_weightings(args.weighting), parse_taus(args.taus)
     rest = tuple(t for t in tasks if not (every and t == "seg"))
     if "voxel" in weightings:
-        check_voxel_memory(args.voxel_resolution, scene, gt_sub >= 0, len(names) if every else len(sub_names))
+        check_voxel_memory(args.voxel_resolution, scene, gt_sub >= 0, len(names) if every else len(sub_names), "seg" in tasks)
     reports = evaluate_scene(scene, present_scores, gt_sub, sub_names, rest, weightings, taus, args.voxel_resolution, args.voxel_empty,
                              assigned=assigned) if rest else []
     if every:  # OpenGaussian's protocol: the argmax over every queried label, the means over the present ones (round 76b F1)
@@ -523,7 +523,7 @@ def _evaluate_and_write(args, scene, field, gt: np.ndarray, names: list[str], in
     return lines
 
 
-def check_voxel_memory(resolution: int, scene, focus: np.ndarray, num_labels: int) -> None:
+def check_voxel_memory(resolution: int, scene, focus: np.ndarray, num_labels: int, segmentation: bool) -> None:
     """A usage error naming --voxel-resolution when the voxel IoU's grid (`VoxelSetup.grid_of`, over the labelled
     Gaussians `focus` [N] bool) would not fit in the free memory (`voxel_iou_bytes`), with the largest resolution that
     does (round 89c F3: 2048, within the flag's range, grew to 20 GB on a room of 2,763 Gaussians and ended in "out of
@@ -532,14 +532,15 @@ def check_voxel_memory(resolution: int, scene, focus: np.ndarray, num_labels: in
     from drsplat.memory import available_memory, format_size
 
     grid = VoxelSetup.grid_of(scene, resolution, focus)
-    need, free = voxel_iou_bytes(grid, num_labels), available_memory()
+    need, free = voxel_iou_bytes(grid, num_labels, segmentation), available_memory()
     if free <= 0 or need <= free:
         return
     fits, room = resolution, free // 2  # half: the scene, the scores and the process hold the rest
-    while fits > 1 and (held := voxel_iou_bytes(VoxelSetup.grid_of(scene, fits, focus), num_labels)) > room:
+    while fits > 1 and (held := voxel_iou_bytes(VoxelSetup.grid_of(scene, fits, focus), num_labels, segmentation)) > room:
         fits = max(1, min(fits - 1, int(fits * (room / held) ** (1 / 3))))
     nx, ny, nz = grid.shape
-    raise UsageError(f"--voxel-resolution {resolution}: the voxel IoU's grid of {nx}x{ny}x{nz} voxels for {counted(num_labels, 'label', 'labels')} "
+    labels = counted(num_labels, "label", "labels") if segmentation else "one label at a time"
+    raise UsageError(f"--voxel-resolution {resolution}: the voxel IoU's grid of {nx}x{ny}x{nz} voxels for {labels} "
                      f"needs about {format_size(need)}, more than the {format_size(free)} of memory free; --voxel-resolution {fits} needs at most half of that")
 
 

@@ -444,10 +444,12 @@ class VoxelSetup:
         return voxel_labels(splat_mass(self.means, self.covs, self.opacities, labels, num_labels, self.grid), self.empty_threshold)
 
 
-def voxel_iou_bytes(grid: VoxelGrid, num_labels: int) -> int:
-    """Bytes the voxel IoU holds at its peak on `grid` for `num_labels` labels: the [C, V] float64 mass of every
-    label (`splat_mass`), its [V] total and argmax (`voxel_labels`), and the two [V] label fields compared."""
-    return grid.num_voxels * 8 * (max(1, num_labels) + 4)
+def voxel_iou_bytes(grid: VoxelGrid, num_labels: int, segmentation: bool = True) -> int:
+    """Bytes the voxel IoU holds at its peak on `grid` for `num_labels` labels. The segmentation: the [C, V] float64
+    mass of every label (`splat_mass`), its [V] total and argmax (`voxel_labels`), and the two [V] label fields
+    compared. The localisation (segmentation=False) takes one label at a time: its [V] mass and a few [V] masks, 16
+    bytes a voxel (round 90a F2: charged the segmentation's, a run of 2.6 GB was refused as needing 26 GB)."""
+    return grid.num_voxels * (8 * (max(1, num_labels) + 4) if segmentation else 16)
 
 
 def voxel_localisation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: np.ndarray, threshold: float,

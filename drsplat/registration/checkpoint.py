@@ -457,7 +457,7 @@ class Checkpoint:
         try:
             views, arrays = _load_snapshot(self.stats_path, self.aggregator.state())
         except FileNotFoundError:  # stopped before the first snapshot: the normal case of an early kill
-            if len(self.log.records) < self.every:
+            if len(self.log.records) <= self.every:  # a kill while the first snapshot was written, too (round 90a F3)
                 log.info("%s: its %d views predate the first statistics snapshot (every %d views); they are redone", self.path,
                          len(self.log.records), self.every)
             else:  # a snapshot was due, so it went (round 89b F3: blamed on timing)
