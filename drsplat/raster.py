@@ -24,6 +24,7 @@ import dataclasses
 
 import importlib
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -210,6 +211,13 @@ def median_nearest_depth(means: np.ndarray, cameras: Sequence[Camera], sample: i
         nearest = np.where(z > 0, np.minimum(nearest, z), nearest)
     nearest = nearest[np.isfinite(nearest)]
     return float(np.median(nearest)) if nearest.size else float("nan")
+
+
+def plane_below(depth: float) -> float:
+    """A near plane that draws Gaussians lying a median `depth` scene units from the cameras (`median_nearest_depth`):
+    the power of ten at most a tenth of it, 10^⌊log₁₀(depth / 10)⌋ (depth in (1e-300, inf); below 1e-300 the power
+    would pass float64's range)."""
+    return 10.0 ** math.floor(math.log10(depth / 10.0))
 
 
 def median_seen_depth(means: np.ndarray, cameras: Sequence[Camera], sample: int = 100_000) -> float:

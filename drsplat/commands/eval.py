@@ -639,7 +639,7 @@ def refuse_if_no_annotated_view_draws(registered: Path, scene, cameras, views, n
     every view would render nothing and score IoU 0, a table that looks like an evaluation (round 89c F2:
     --near-plane 50 on a room 0.37 units from its cameras printed mIoU 0.000, exit 0; `register` refuses such a
     plane). A plane given with --near-plane is a usage error naming the flag; the one the header records is named as such."""
-    from drsplat.raster import median_nearest_depth, some_view_draws
+    from drsplat.raster import median_nearest_depth, plane_below, some_view_draws
 
     annotated = {v.name for v in views}
     shown = [c for c in cameras if c.name in annotated] or list(cameras)
@@ -650,7 +650,7 @@ def refuse_if_no_annotated_view_draws(registered: Path, scene, cameras, views, n
     if not math.isfinite(depth):
         raise DrsplatError(f"no Gaussian of {shown_path(registered)} lies in front of {cams}, so every view would render nothing: the "
                            "cameras face away from the scene, or --source holds the cameras of another scene, frame or unit")
-    smaller = min(10.0 ** math.floor(math.log10(depth / 10.0)), NEAR) if 1e-300 < depth < math.inf else NEAR
+    smaller = min(plane_below(depth), NEAR) if 1e-300 < depth < math.inf else NEAR
     why = (f"no Gaussian of {shown_path(registered)} lies {near_plane:g} scene units or more in front of {cams} (the near plane), so every "
            f"view would render nothing and score IoU 0: the Gaussians lie a median {depth:.2g} units from these cameras; pass a smaller "
            f"--near-plane (such as {smaller:g})")

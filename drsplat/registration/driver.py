@@ -42,7 +42,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX, SCENE_PQ_M
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import ALPHA_MIN, NEAR, get_engine, kernels_cached, median_nearest_depth, share_within_near_plane, some_view_draws, widened_scene
+from drsplat.raster import ALPHA_MIN, NEAR, get_engine, kernels_cached, median_nearest_depth, plane_below, share_within_near_plane, some_view_draws, widened_scene
 from drsplat.registration.aggregate import PEAK_MIN, REJECT_FIRST_RUN_PROBE, SHARP_FIRST_RUN_PROBE, Aggregator, mode_stages, without_check, without_rejection
 from drsplat.registration.fit import (FIRST_RUN_PROBE as FIT_PROBE, FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine,
                                       probe_folds_floaters, probe_memory, probe_memory_bound, resolve_mode)
@@ -929,7 +929,7 @@ def near_plane_remedy(depth: float, near_plane: float = NEAR, decided: bool = Fa
     disagree on units. decided: the plane was decided by `--near-plane auto`, and the remedy names a plane to pass."""
     if not 1e-300 < depth < math.inf:  # NaN too; under 1e-300 the factor would pass float64's range
         return "are the scene and its cameras in the same units?"
-    plane = 10.0 ** math.floor(math.log10(depth / 10.0))
+    plane = plane_below(depth)
     if near_plane != NEAR and decided:
         return (f"the Gaussians lie a median {depth:.2g} scene units from these cameras, nearer than the near plane of {near_plane:g} "
                 f"that --near-plane auto decided from the training images: register with --near-plane {min(plane, NEAR):g}")
