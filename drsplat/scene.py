@@ -335,7 +335,7 @@ class LoadReport:
     spare_chunks: int = 0  # a compressed PLY's chunks past the ceil(rows / 256) its splats use (its vertex count may be smaller than the data)
     overflowing_scales: int = 0  # Gaussians whose exp(log scale) exceeds float32 (they render as infinite)
     far_means: int = 0  # Gaussians farther than MAX_COORDINATE from the origin on some axis (no camera sees them)
-    coarse_positions: tuple[float, float, float] | None = None  # (largest |coordinate|, float32's step there, median Gaussian size) where the step is coarse
+    coarse_positions: tuple[float, float, float, bool] | None = None  # (largest |coordinate|, the step there, median Gaussian size, the file's own step?) where coarse
     large_sh: int = 0  # Gaussians with an SH coefficient beyond MAX_SH_COEFFICIENT (their colour could overflow float32)
     huge_scales: int = 0  # Gaussians more than HUGE_SCALE_RATIO times the scene's extent
     scene_extent: float = 0.0  # the diagonal of the box of all but the outermost means on each axis (`scene_extent`)
@@ -377,9 +377,10 @@ class LoadReport:
             notes.append(f"{counted(self.far_means, 'Gaussian lies', 'Gaussians lie')} beyond {MAX_COORDINATE:.0e} from the origin on some axis, past the "
                          "coordinates drsplat renders (a units or export mix-up?), so they are not rendered and registration leaves them unassigned")
         if self.coarse_positions is not None:
-            reach, step, size = self.coarse_positions
-            notes.append(f"positions reach {reach:.3g} units from the origin, where float32 (which drsplat renders in; a file's double "
-                         f"positions are read so) holds a coordinate in steps of {step:.3g}: a Gaussian may lie up to {step / 2 / size:.2g} of "
+            reach, step, size, stored = self.coarse_positions
+            held = ("the file stores them in steps of" if stored else
+                    "float32 (which drsplat renders in; a file's double positions are read so) holds a coordinate in steps of")
+            notes.append(f"positions reach {reach:.3g} units from the origin, where {held} {step:.3g}: a Gaussian may lie up to {step / 2 / size:.2g} of "
                          f"the median Gaussian's size ({size:.3g}) off its place, and fine detail is lost; move the capture near the origin "
                          "(subtract one point from its positions and from its cameras' positions) before exporting it")
         if self.large_sh:
@@ -937,8 +938,9 @@ class GeometryFindings:
     every ⌈N / EXTENT_SAMPLE⌉-th of the N rows added: the file's rows for a load that drops none. Holds 4 bytes a row (its largest log scale, for the huge ones once the extent is known)
     and the sampled means (12 bytes each, at most EXTENT_SAMPLE of them)."""
 
-    def __init__(self, num_rows: int):
+    def __init__(self, num_rows: int, position_step: float = 0.0):
         self.step = max(1, -(-num_rows // EXTENT_SAMPLE))
+        self.position_step = position_step  # the file's own grid of positions (a .spz's fixed point), else 0
         self.far_means = self.large_sh = self.overflowing_scales = self.opacity_strays = 0
         self.opacities, self.scales = ValueSpread(), ValueSpread()
         self.scale_columns = 0
@@ -984,16 +986,18 @@ class GeometryFindings:
         report.huge_scales = (count_rows_beyond(largest[:, None], float(np.log(HUGE_SCALE_RATIO * report.scene_extent)), signed=True)
                               if report.scene_extent > 0.0 else 0)
         report.far_means, report.large_sh, report.overflowing_scales = self.far_means, self.large_sh, self.overflowing_scales
-        report.coarse_positions = float32_coarse_positions(sampled, largest[::self.step])
+        report.coarse_positions = float32_coarse_positions(sampled, largest[::self.step], self.position_step)
         report.activated_opacities = activated_from(self.opacities, self.opacity_strays)
         report.linear_scale_floor = linear_floor_from(self.scales, self.scale_columns, report.scene_extent)
         return report
 
 
-def float32_coarse_positions(means: np.ndarray, largest_log_scales: np.ndarray) -> tuple[float, float, float] | None:
-    """(largest |coordinate|, float32's step there, median Gaussian size) when float32 rounds positions by more
-    than COARSE_STEP_SHARE of the median Gaussian's largest scale, else None (round 89d F1: a georeferenced
-    capture 1e7 units out, stored as double, registered as if rounded to whole units, without a word).
+def float32_coarse_positions(means: np.ndarray, largest_log_scales: np.ndarray, stored_step: float = 0.0) -> tuple[float, float, float, bool] | None:
+    """(largest |coordinate|, the step positions are held in there, median Gaussian size, whether that step is the
+    file's own) when it rounds positions by more than COARSE_STEP_SHARE of the median Gaussian's largest scale, else
+    None (round 89d F1: a georeferenced capture 1e7 units out, stored as double, registered as if rounded to whole
+    units, without a word). The step: float32's at the largest |coordinate|, or `stored_step` where the file keeps a
+    coarser grid of its own (a .spz's fixed point: round 90b F2, 1.5e5 units out said nothing at load).
     means: [S, 3] a sample of the kept means (the largest |coordinate| decides the step, a power of two, so a
     sample's misses it by a factor 2 at most); largest_log_scales: [S'] their largest log scales."""
     with np.errstate(invalid="ignore"):
@@ -1002,10 +1006,10 @@ def float32_coarse_positions(means: np.ndarray, largest_log_scales: np.ndarray) 
     if finite.shape[0] == 0 or logs.shape[0] == 0:
         return None
     reach = float(np.abs(finite).max())
-    step = float(np.spacing(np.float32(reach)))
+    step = max(float(np.spacing(np.float32(reach))), stored_step)
     with np.errstate(over="ignore"):
         size = float(np.exp(np.float64(np.median(logs))))
-    return (reach, step, size) if step / 2 > COARSE_STEP_SHARE * size else None
+    return (reach, step, size, step == stored_step) if step / 2 > COARSE_STEP_SHARE * size else None
 
 
 def _read_vertex_rows(path: str | Path) -> tuple[Path, PlyHeader, dict[str, StoredRows]]:
@@ -1807,7 +1811,7 @@ def assemble_scene(path: Path, cols: dict, order: list[str], layout: str, commen
         quats[zero_q] = (1.0, 0.0, 0.0, 0.0)
     # the INRIA layout's stored columns are 3DGS's raw parameters, which other encodings mimic: only they are checked for encoding
     stored = {k: cols[k] for k in ("stored_opacity", "stored_log_scales")} if "stored_opacity" in cols else {}
-    findings = GeometryFindings(means.shape[0])
+    findings = GeometryFindings(means.shape[0], float(cols.get("position_step", 0.0)))
     findings.add(0, {"means": means, "log_scales": log_scales, "sh": sh, **stored}, np.ones(means.shape[0], bool))
     findings.fill(report)
     report.beyond_float32 = int(cols.get("beyond_float32", 0))

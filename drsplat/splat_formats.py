@@ -562,6 +562,7 @@ def spz_columns(path: Path) -> tuple[dict, list[str], str]:
     with np.errstate(invalid="ignore", over="ignore"):  # a float16 NaN or inf (version 1) flips without numpy's warning: the load counts it
         cols = _decode_spz_blocks(blocks, version, points, degree, int(header["fractional_bits"]))
         _to_ply_frame(cols, frame)
+    cols["position_step"] = 2.0 ** -int(header["fractional_bits"])  # its fixed-point grid: the load's coarse-positions finding judges it
     if degree > max(SH_REST_COUNTS):  # the degrees a GaussianScene (and 3DGS) holds
         log.warning("%s: has SH degree %d; drsplat keeps degrees 0-%d (the rest only tints view-dependent colour)",
                     path, degree, max(SH_REST_COUNTS))

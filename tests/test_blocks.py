@@ -970,9 +970,11 @@ def test_a_damaged_first_record_is_said_to_start_from_scratch(tiny, inputs, tmp_
     np.testing.assert_array_equal(resumed.features, full.features)
 
 
-def test_gaussians_left_unrendered_are_said_once_a_registration_with_their_cause(tiny, inputs, tmp_path, capsys):
+@pytest.mark.parametrize("aggregate", [None, "solve-reject"], ids=["default", "solve"])
+def test_gaussians_left_unrendered_are_said_once_a_registration_with_their_cause(tiny, inputs, tmp_path, capsys, aggregate):
     """Round 89d F4: ten Gaussians whose log scale overflows float32 were said three times by `register` (the frame
-    check's sample, the fit stage's geometry, once per chunk of it), as "non-finite attributes" without that cause."""
+    check's sample, the fit stage's geometry, once per chunk of it), as "non-finite attributes" without that cause;
+    a solve mode said it once more, preparing the scene again for its re-renders (round 90b F1)."""
     import dataclasses
 
     from drsplat.cli import main
@@ -983,7 +985,7 @@ def test_gaussians_left_unrendered_are_said_once_a_registration_with_their_cause
     log_scales[:10, 0] = 100.0
     save_ply(dataclasses.replace(scene, log_scales=log_scales), tmp_path / "big.ply")
     assert main(["register", str(tmp_path / "big.ply"), "--source", str(tiny), "--features", str(tiny / "features"), "--out",
-                 str(tmp_path / "reg.ply"), "--topk", "10", "--no-progress"]) == 0
+                 str(tmp_path / "reg.ply"), "--topk", "10", "--no-progress", *(["--aggregate", aggregate] if aggregate else [])]) == 0
     said = [line for line in capsys.readouterr().err.splitlines() if "are not rendered" in line]
     assert len(said) == 1 and f"10 of {scene.num_gaussians} Gaussians have non-finite attributes" in said[0], said
     assert "a log scale above 88.7 whose scale overflows float32" in said[0]

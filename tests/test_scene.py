@@ -1107,6 +1107,7 @@ def test_positions_far_from_the_origin_for_their_gaussians_are_a_finding(tmp_pat
         notes = [n for n in report.findings() if "holds a coordinate in steps of" in n]
         assert bool(notes) == coarse, (shift, report.findings())
         if coarse:
-            reach, step, size = report.coarse_positions
+            reach, step, size, stored = report.coarse_positions
+            assert not stored  # float32's step, not the file's
             assert step == float(np.spacing(np.float32(reach))) and 0.08 < size < 0.14 and step / 2 > 0.1 * size
             assert f"positions reach {reach:.3g} units from the origin" in notes[0] and "move the capture near the origin" in notes[0]

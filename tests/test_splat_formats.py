@@ -792,3 +792,21 @@ def test_a_compressed_chunk_range_that_is_infinite_drops_its_splats_without_nump
     assert back.num_gaussians < 300 and any("dropped" in note for note in report.findings())
     assert f"field '{column}': 1 of 2 chunks hold a range bound that is not finite (chunk 0: {value:g})" in caplog.text, caplog.text
     assert "mirrored" not in caplog.text, "round 86c F5: a non-finite bound is no mirrored range"
+
+
+def test_an_spz_whose_fixed_point_grid_is_coarse_is_a_load_finding(tmp_path):
+    """Round 90b F2: a .spz 1.5e5 units out keeps positions in steps of 1/32 (5 fractional bits): its save warned that
+    they move by up to 0.14 of the median Gaussian's size, but its load said "findings none" (float32's own step there
+    is finer); 1e6 out, the finding named float32's step (0.0625), half the file's 0.125."""
+    import dataclasses
+
+    from drsplat.testing import random_scene
+
+    base = random_scene(np.random.default_rng(0), 400, log_scale=(-2.5, -2.0))
+    for shift, step in ((1.5e5, 2.0 ** -5), (1e6, 2.0 ** -3)):
+        save_spz(dataclasses.replace(base, means=(base.means.astype(np.float64) + shift).astype(np.float32)), tmp_path / "far.spz")
+        _, report = load_scene_report(tmp_path / "far.spz")
+        assert report.coarse_positions is not None and report.coarse_positions[1] == step and report.coarse_positions[3], report.coarse_positions
+        assert any(f"where the file stores them in steps of {step:.3g}" in note for note in report.findings()), report.findings()
+    save_spz(base, tmp_path / "near.spz")
+    assert load_scene_report(tmp_path / "near.spz")[1].coarse_positions is None

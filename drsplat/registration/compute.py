@@ -111,12 +111,13 @@ def check_engine(engine: str, device: str) -> None:
         raise UsageError(f"the {engine} engine runs on the CPU only, not on {device!r}; use --engine torch with --device {device}")
 
 
-def prepare_geometry(scene: GaussianScene, chunk: int = 1 << 20) -> PreparedScene:
+def prepare_geometry(scene: GaussianScene, chunk: int = 1 << 20, warn: bool = True) -> PreparedScene:
     """`raster.prepare_scene` without the SH coefficients (registration renders no colour).
 
     Prepared chunk by chunk: ~101 bytes per Gaussian (means and covariances float64, opacity,
     finite flag), the SH checked but never copied. Gaussians with non-finite SH are still flagged
-    non-finite, exactly as prepare_scene does.
+    non-finite, exactly as prepare_scene does. warn: say the unusable ones (`raster.warn_unrendered`) once,
+    not per chunk; off for a second preparation of a scene already said (the solve's: round 90b F1).
     """
     n = scene.num_gaussians
     means = np.empty((n, 3), np.float64)
@@ -129,7 +130,8 @@ def prepare_geometry(scene: GaussianScene, chunk: int = 1 << 20) -> PreparedScen
         means[start:stop], covs[start:stop] = part.means, part.covariances
         opacities[start:stop], finite[start:stop] = part.opacities, part.finite
     prepared = PreparedScene(means=means, covariances=covs, opacities=opacities, sh=np.zeros((n, 0, 3), np.float32), finite=finite)
-    warn_unrendered(prepared)  # once for the scene, not once a chunk
+    if warn:
+        warn_unrendered(prepared)  # once for the scene, not once a chunk
     return prepared
 
 

@@ -827,7 +827,7 @@ def _solve_block(run: Run, block, cancel) -> None:
     """The render-consistent solve on the whole scene's sums (drsplat.registration.solve), re-rendering
     the views with the registration's engine in this process; cancel: checked before each view it renders."""
     options = run.options
-    solve_registration(prepare_geometry(run.scene), run.views, run.features_dir, options.level, options.topk, options.engine, options.device,
+    solve_registration(prepare_geometry(run.scene, warn=False), run.views, run.features_dir, options.level, options.topk, options.engine, options.device,
                        block.F, cancel=cancel, near=options.near_plane)
 
 
