@@ -223,12 +223,16 @@ def test_register_outputs_may_not_replace_the_default_real_scene(tmp_path, capsy
     monkeypatch.setattr(register, "DEFAULT_REAL", default)
     before = digest(default)
     torch = ["bench", "register", "--skip-synthetic", "--engine", "torch", "--device", "cpu"]
-    code, err, _ = run_cli(torch + ["--profile-views", "1", "--trace", default], capsys)
+    for flags in (["--profile-views", "1", "--trace", default], ["--json", default]):  # JSON outputs named .ply: refused by name (round 89c F4, 90a F1)
+        code, err, _ = run_cli(torch + flags, capsys)
+        assert code == 2 and "this output is JSON text; a .ply name would hold it" in err, err
+        assert digest(default) == before
+    copy = tmp_path / "flowers.json"  # a default --real of another name is still guarded by the bench itself
+    copy.write_bytes(b"{}")
+    monkeypatch.setattr(register, "DEFAULT_REAL", copy)
+    code, err, _ = run_cli(torch + ["--json", copy], capsys)
     assert code == 1 and "cannot write" in err and "--real (its default)" in err, err
-    assert digest(default) == before
-    code, err, _ = run_cli(torch + ["--json", default], capsys)  # a JSON output named .ply: refused by its name first (round 89c F4)
-    assert code == 2 and "this output is JSON text; a .ply name would hold it" in err, err
-    assert digest(default) == before
+    assert copy.read_bytes() == b"{}"
 
 
 def test_scale_json_may_not_replace_a_file_of_the_room(tmp_path, capsys, no_work):
