@@ -146,20 +146,49 @@ def address_host_port(address: str) -> tuple[str, int]:
     return host.removeprefix("[").removesuffix("]"), int(port)
 
 
-def _check_reachable(address: str, timeout: float = 3.0) -> None:
-    """A clear error at once when host:port accepts no connection (ray.init would wait much longer)."""
+# HTTP/2's client connection preface and an empty SETTINGS frame: a gRPC server (Ray's GCS, the Ray Client server)
+# answers them with a SETTINGS frame of its own (RFC 9113, 3.4)
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+HTTP2_SETTINGS = 4  # a frame's type byte (the 4th of its 9-byte header)
+
+
+def answers_as_grpc(sock: socket.socket, timeout: float) -> bool:
+    """Whether the server at the other end of `sock` answers HTTP/2's connection preface with a SETTINGS frame within
+    `timeout` seconds, as every gRPC server does (an HTTP/1 server answers "400", a silent one nothing)."""
+    sock.settimeout(timeout)
+    try:
+        sock.sendall(HTTP2_PREFACE)
+        head = b""
+        while len(head) < 9:
+            part = sock.recv(9 - len(head))
+            if not part:
+                return False
+            head += part
+    except OSError:  # socket.timeout included
+        return False
+    return head[3] == HTTP2_SETTINGS
+
+
+def check_reachable(address: str, timeout: float = 3.0) -> None:
+    """A clear error at once when host:port accepts no connection, or accepts one but does not answer as a gRPC
+    server (Ray's GCS) does: ray.init would wait much longer, or forever (round 90c F1: an HTTP server or a silent
+    port hung `register --ray HOST:PORT`, a first Ctrl-C unheard). With RAY_USE_TLS the probe only connects."""
     problem = address_problem(address)
     if problem is not None:
         raise DrsplatError(f"--ray {address!r} {problem}")
     host, port = address_host_port(address)
     try:
-        with socket.create_connection((host, port), timeout=timeout):
-            return
+        with socket.create_connection((host, port), timeout=timeout) as sock:
+            if os.environ.get("RAY_USE_TLS", "0").strip().lower() in ("1", "true") or answers_as_grpc(sock, timeout):
+                return
     except OSError as exc:
         raise DrsplatError(
             f"cannot reach a Ray cluster at {address} ({exc.strerror or exc}); start one with `ray start --head` "
             f"and pass the address it prints, or use --ray with no address for a local cluster"
         ) from None
+    raise DrsplatError(f"{address} accepts a connection but does not answer as a Ray cluster does (its GCS speaks gRPC; no answer to "
+                       f"HTTP/2's preface within {timeout:g} s: another service on that port?); pass the address `ray start --head` "
+                       "prints, or use --ray with no address for a local cluster")
 
 
 def connect(address: str | None, *, num_cpus: int | None = None, object_store_memory: int | None = None) -> bool:
@@ -172,7 +201,7 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
     ray = import_ray()
     local = address is None or address in LOCAL_ADDRESSES
     if not local and address != "auto":
-        _check_reachable(address)
+        check_reachable(address)
     if ray.is_initialized():
         return False
     kwargs = {"runtime_env": _runtime_env(address), "logging_level": logging.WARNING, "log_to_driver": False}
@@ -192,7 +221,9 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
                 ray.init(**{**kwargs, "runtime_env": _shipped_env()})
     except (ConnectionError, RuntimeError, ValueError) as exc:
         hint = "" if local or address == "auto" else auth_hint()
-        raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {exc}{hint}") from None
+        # Ray's own advice names its CLI's flag; drsplat's is --ray (round 90c F3)
+        said = str(exc).replace("`--address` flag", "--ray").replace("--address flag", "--ray")
+        raise DrsplatError(f"could not connect to the Ray cluster at {address or 'a new local instance'}: {said}{hint}") from None
     except SystemExit as exc:
         if exc.code != signal.SIGTERM or not callable(sigterm):
             raise

@@ -99,6 +99,7 @@ def other_data_suffix(path: Path) -> bool:
 
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
+    from drsplat.cluster import LOCAL_ADDRESSES, check_reachable
     from drsplat.errors import InputError, UsageError
     from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
     from drsplat.registration import RegisterOptions
@@ -110,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
     device, engine = resolve_compute(args)  # before any loading: a missing GPU is the first thing to say
     if args.ray_workers is not None and args.ray is None:
         log.warning("--ray-workers %d applies to a run on Ray (--ray); without it the views are computed here", args.ray_workers)
+    if args.ray not in (None, "auto", *LOCAL_ADDRESSES):  # before the scene is read and the probe views rendered (round 90c F2)
+        check_reachable(args.ray)
     decided = args.near_plane == "auto"  # decided from the scene and its images once they are read
     options = RegisterOptions(topk=args.topk, level=args.level, codebook=args.codebook, keep_unassigned=args.keep_unassigned,
                               memory_budget=args.memory_budget, ray=args.ray, ray_workers=args.ray_workers, engine=engine, device=device,
