@@ -186,9 +186,9 @@ def check_reachable(address: str, timeout: float = 3.0) -> None:
             f"cannot reach a Ray cluster at {address} ({exc.strerror or exc}); start one with `ray start --head` "
             f"and pass the address it prints, or use --ray with no address for a local cluster"
         ) from None
-    raise DrsplatError(f"{address} accepts a connection but does not answer as a Ray cluster does (its GCS speaks gRPC; no answer to "
-                       f"HTTP/2's preface within {timeout:g} s: another service on that port?); pass the address `ray start --head` "
-                       "prints, or use --ray with no address for a local cluster")
+    raise DrsplatError(f"{address} accepts a connection but does not answer as a Ray cluster does (its GCS speaks gRPC, and no gRPC "
+                       f"answer to HTTP/2's preface came within {timeout:g} s: another service on that port?); pass the address "
+                       "`ray start --head` prints, or use --ray with no address for a local cluster")
 
 
 def connect(address: str | None, *, num_cpus: int | None = None, object_store_memory: int | None = None) -> bool:
