@@ -63,7 +63,7 @@ import numpy as np
 import zstandard
 
 from drsplat.errors import InputError, OutputError
-from drsplat.scene import (COARSE_EXTENT_SHARE, COARSE_STEP_SHARE, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, check_element_sizes, compressed_ply_bytes,
+from drsplat.scene import (COARSE_EXTENT_SHARE, float32_coarse_positions, SH_C0, SH_REST_COUNTS, GaussianScene, LoadReport, assemble_scene, byte_alpha, check_element_sizes, compressed_ply_bytes,
                            dc_from_rgb, load_ply_report, opacity_logits, read_ply_header, save_ply, starts_as_ply)
 from drsplat.utils import unreachable_cause, write_bytes_atomic
 
@@ -954,10 +954,11 @@ def _say_coarse_positions(scene: GaussianScene, path: Path, fractional_bits: int
     rounding (half a step) exceeds COARSE_STEP_SHARE of the median Gaussian's largest scale (a
     georeferenced scene 1e6 units out: steps of 1/8 against Gaussians of 0.1 lose their detail)."""
     step = 2.0 ** -fractional_bits
-    size = float(np.median(scene.largest_scales()))
     text = (f"{path}: positions reach {float(np.abs(scene.means).max()):.4g} units, beyond the ±2048 that .spz holds at 1/4096 "
             f"steps: stored with {fractional_bits} fractional bits (steps of {step:.3g})")
-    if step / 2 > COARSE_STEP_SHARE * size:
+    coarse = float32_coarse_positions(scene.means, scene.log_scales.max(axis=1), step)  # the rule a load of the file judges it by
+    if coarse is not None:
+        size = coarse[2]
         log.warning("%s, which moves a Gaussian by up to %.2g of the median Gaussian's size (%.3g); move the scene near the origin, "
                     "or export .ply or .compressed.ply, to keep its detail", text, step / 2 / size, size)
     else:

@@ -430,8 +430,7 @@ class VoxelSetup:
     @staticmethod
     def grid_of(scene, resolution: int = 96, focus: np.ndarray | None = None) -> VoxelGrid:
         """The grid `from_scene` makes: `resolution` voxels on the longest side of the box of the Gaussians in `focus`."""
-        means = scene.means.astype(np.float64)
-        return grid_for(means if focus is None else means[focus], resolution)
+        return grid_for(scene.means if focus is None else scene.means[focus], resolution)  # grid_for reads them in float64
 
 
     def occupancy(self, selected: np.ndarray) -> np.ndarray:
