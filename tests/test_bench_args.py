@@ -653,3 +653,28 @@ def test_render_bench_times_the_sh_kernel_against_its_reference_and_the_principa
     assert band_row.rstrip(" |").endswith("yes"), band_row  # the numba pass found the reference's bands
     code, err, _ = run_cli(["bench", "render", "--scene", tmp_path / "missing.ply"], capsys)
     assert code == 1 and "missing.ply" in err, err
+
+
+def test_a_bench_says_each_warning_once_however_often_its_repeats_raise_it(caplog):
+    """Each timed repeat prepares and registers again: a scene's warning once a repeat is no row of the table (round
+    90b F3: `bench render` said a scene's unusable Gaussians 8 times). Other warnings, and info lines, still show."""
+    import logging
+
+    from drsplat.commands.bench import _guarded
+
+    log = logging.getLogger("drsplat.raster")
+
+    def repeats(args) -> int:
+        for _ in range(3):
+            log.warning("%d of %d Gaussians are not rendered", 3, 2760)
+            log.info("repeat done")
+        log.warning("%d of %d Gaussians are not rendered", 3, 2800)  # another scene: said too
+        return 0
+
+    with caplog.at_level(logging.INFO):
+        assert _guarded(repeats)(argparse.Namespace()) == 0
+        log.warning("%d of %d Gaussians are not rendered", 3, 2760)  # after the bench: the filter is gone
+    texts = [(r.levelname, r.getMessage()) for r in caplog.records]
+    assert texts.count(("WARNING", "3 of 2760 Gaussians are not rendered")) == 2
+    assert texts.count(("WARNING", "3 of 2800 Gaussians are not rendered")) == 1
+    assert texts.count(("INFO", "repeat done")) == 3
