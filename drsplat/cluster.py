@@ -149,46 +149,193 @@ def address_host_port(address: str) -> tuple[str, int]:
 # HTTP/2's client connection preface and an empty SETTINGS frame: a gRPC server (Ray's GCS, the Ray Client server)
 # answers them with a SETTINGS frame of its own (RFC 9113, 3.4)
 HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
-HTTP2_SETTINGS = 4  # a frame's type byte (the 4th of its 9-byte header)
+HTTP2_DATA, HTTP2_HEADERS, HTTP2_RST_STREAM, HTTP2_SETTINGS, HTTP2_GOAWAY = 0, 1, 3, 4, 7  # frame types
+HTTP2_END_STREAM, HTTP2_ACK, HTTP2_END_HEADERS, HTTP2_PADDED = 0x1, 0x1, 0x4, 0x8  # frame flags
+HTTP2_MAX_FRAME = 1 << 14  # the largest frame a peer may send before SETTINGS raise it (RFC 9113, 4.2)
+# the GCS's cheapest call, the first ray.init makes (a raylet's port answers it "unimplemented", round 91a F3)
+GCS_PROBE_METHOD = "/ray.rpc.NodeInfoGcsService/GetClusterId"
 
 
-def answers_as_grpc(sock: socket.socket, timeout: float) -> bool:
-    """Whether the server at the other end of `sock` answers HTTP/2's connection preface with a SETTINGS frame within
-    `timeout` seconds, as every gRPC server does (an HTTP/1 server answers "400", a silent one nothing)."""
-    sock.settimeout(timeout)
+@dataclass(frozen=True)
+class Http2Frame:
+    kind: int
+    flags: int
+    stream: int
+    payload: bytes
+
+
+def _read_exact(sock: socket.socket, size: int, deadline: float) -> bytes | None:
+    """`size` bytes from `sock` by time.monotonic() `deadline`, or None (closed, an error, or too late)."""
+    data = b""
+    while len(data) < size:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return None
+        sock.settimeout(left)
+        try:
+            part = sock.recv(size - len(data))
+        except OSError:  # socket.timeout included
+            return None
+        if not part:
+            return None
+        data += part
+    return data
+
+
+def read_http2_frame(sock: socket.socket, deadline: float) -> Http2Frame | None:
+    """The next HTTP/2 frame (9-byte header: 24-bit length, type, flags, 31-bit stream), or None: closed, late, or a
+    length past HTTP2_MAX_FRAME (not HTTP/2)."""
+    head = _read_exact(sock, 9, deadline)
+    if head is None:
+        return None
+    size = int.from_bytes(head[:3], "big")
+    if size > HTTP2_MAX_FRAME:
+        return None
+    payload = _read_exact(sock, size, deadline) if size else b""
+    if payload is None:
+        return None
+    return Http2Frame(head[3], head[4], int.from_bytes(head[5:9], "big") & 0x7FFFFFFF, payload)
+
+
+def is_server_preface(frame: Http2Frame | None) -> bool:
+    """Whether `frame` is what an HTTP/2 server must send first: a SETTINGS frame on stream 0, not an ACK, of whole
+    6-byte settings (RFC 9113, 3.4 and 6.5)."""
+    return (frame is not None and frame.kind == HTTP2_SETTINGS and frame.stream == 0 and not frame.flags & HTTP2_ACK
+            and len(frame.payload) % 6 == 0)
+
+
+def _hpack_literal(name: str, value: str) -> bytes:
+    """One header field as HPACK's "literal without indexing, new name", no Huffman (RFC 7541, 6.2.2); names and
+    values under 127 bytes (one-byte lengths)."""
+    raw_name, raw_value = name.encode("ascii"), value.encode("ascii")
+    return bytes([0, len(raw_name)]) + raw_name + bytes([len(raw_value)]) + raw_value
+
+
+def gcs_probe_request(authority: str) -> bytes:
+    """The frames of a unary gRPC call of GCS_PROBE_METHOD on stream 1 after the preface: HEADERS, then DATA holding
+    the empty request message (gRPC's 5-byte prefix, uncompressed, length 0) and ending the stream."""
+    block = b"".join(_hpack_literal(name, value) for name, value in (
+        (":method", "POST"), (":scheme", "http"), (":path", GCS_PROBE_METHOD), (":authority", authority[:100]),
+        ("content-type", "application/grpc"), ("te", "trailers")))
+    headers = len(block).to_bytes(3, "big") + bytes([HTTP2_HEADERS, HTTP2_END_HEADERS]) + (1).to_bytes(4, "big") + block
+    message = bytes(5)
+    data = len(message).to_bytes(3, "big") + bytes([HTTP2_DATA, HTTP2_END_STREAM]) + (1).to_bytes(4, "big") + message
+    return headers + data
+
+
+def protobuf_bytes_field(message: bytes, number: int) -> bytes | None:
+    """The last value of length-delimited field `number` in the protobuf `message`, b"" when absent, or None when
+    `message` is not a protobuf message (a field of wire type 1, 3, 4 or 5 included: GetClusterIdReply has none)."""
+    found, at = b"", 0
+
+    def varint() -> int | None:
+        nonlocal at
+        value = shift = 0
+        while at < len(message) and shift < 64:
+            byte = message[at]
+            at += 1
+            value |= (byte & 0x7F) << shift
+            shift += 7
+            if not byte & 0x80:
+                return value
+        return None
+
+    while at < len(message):
+        tag = varint()
+        if tag is None or tag >> 3 == 0:
+            return None
+        if tag & 7 == 0:
+            if varint() is None:
+                return None
+        elif tag & 7 == 2:
+            size = varint()
+            if size is None or at + size > len(message):
+                return None
+            if tag >> 3 == number:
+                found = message[at:at + size]
+            at += size
+        else:
+            return None
+    return found
+
+
+def gcs_answer(sock: socket.socket, authority: str, deadline: float, ask_gcs: bool = True) -> str:
+    """What the server at the other end of `sock` is, by `deadline` (time.monotonic()): "gcs" (it answers the
+    GCS_PROBE_METHOD call with a GetClusterIdReply holding a cluster id: Ray's GCS), "grpc" (an HTTP/2 server that
+    answers the call otherwise, or, with `ask_gcs` False, one that answers the preface at all), "grpc_silent" (an
+    HTTP/2 server that says nothing of the call by the deadline) or "none" (no HTTP/2 answer: an HTTP/1 server answers
+    "400", a silent one nothing, some other one bytes that are no SETTINGS frame).
+    A gRPC error comes as trailers alone (a HEADERS frame that ends the stream); a reply as DATA on the stream."""
     try:
-        sock.sendall(HTTP2_PREFACE)
-        head = b""
-        while len(head) < 9:
-            part = sock.recv(9 - len(head))
-            if not part:
-                return False
-            head += part
-    except OSError:  # socket.timeout included
-        return False
-    return head[3] == HTTP2_SETTINGS
+        sock.sendall(HTTP2_PREFACE + (gcs_probe_request(authority) if ask_gcs else b""))
+    except OSError:
+        return "none"
+    if not is_server_preface(read_http2_frame(sock, deadline)):
+        return "none"
+    if not ask_gcs:
+        return "grpc"
+    with contextlib.suppress(OSError):
+        sock.sendall(bytes([0, 0, 0, HTTP2_SETTINGS, HTTP2_ACK, 0, 0, 0, 0]))
+    reply = b""
+    while (frame := read_http2_frame(sock, deadline)) is not None:
+        if frame.kind == HTTP2_GOAWAY or (frame.stream == 1 and frame.kind == HTTP2_RST_STREAM):
+            return "grpc"
+        if frame.stream != 1:
+            continue
+        if frame.kind == HTTP2_HEADERS and frame.flags & HTTP2_END_STREAM and not reply:
+            return "grpc"  # trailers only: the call failed (unimplemented on a raylet's port)
+        if frame.kind == HTTP2_DATA:
+            payload = frame.payload
+            if frame.flags & HTTP2_PADDED:
+                payload = payload[1:len(payload) - payload[0]] if payload and payload[0] < len(payload) else b""
+            reply += payload
+            if len(reply) >= 5:
+                size = int.from_bytes(reply[1:5], "big")
+                if reply[0] != 0 or len(reply) > 5 + size:
+                    return "grpc"
+                if len(reply) == 5 + size:
+                    return "gcs" if protobuf_bytes_field(reply[5:], 2) else "grpc"
+        if frame.flags & HTTP2_END_STREAM:
+            return "grpc"
+    return "grpc" if reply else "grpc_silent"
 
 
 def check_reachable(address: str, timeout: float = 3.0) -> None:
-    """A clear error at once when host:port accepts no connection, or accepts one but does not answer as a gRPC
-    server (Ray's GCS) does: ray.init would wait much longer, or forever (round 90c F1: an HTTP server or a silent
-    port hung `register --ray HOST:PORT`, a first Ctrl-C unheard). With RAY_USE_TLS the probe only connects."""
+    """A clear error within `timeout` seconds when host:port accepts no connection, or accepts one but is not Ray's
+    GCS: ray.init would wait much longer, or forever (round 90c F1: an HTTP server or a silent port hung
+    `register --ray HOST:PORT`, a first Ctrl-C unheard; round 91a F3: an HTTP/2 server that is not gRPC, or a
+    raylet's port). The GCS is asked its cluster id (`gcs_answer`). A ray:// address (the Ray Client server, another
+    service), RAY_AUTH_MODE=token (the call would need the token) only need an HTTP/2 answer; with RAY_USE_TLS the
+    probe only connects."""
     problem = address_problem(address)
     if problem is not None:
         raise DrsplatError(f"--ray {address!r} {problem}")
     host, port = address_host_port(address)
+    deadline = time.monotonic() + timeout
+    client = address.lower().startswith("ray://")
+    plain = os.environ.get("RAY_AUTH_MODE", "").strip().lower() != "token"
     try:
         with socket.create_connection((host, port), timeout=timeout) as sock:
-            if os.environ.get("RAY_USE_TLS", "0").strip().lower() in ("1", "true") or answers_as_grpc(sock, timeout):
+            if os.environ.get("RAY_USE_TLS", "0").strip().lower() in ("1", "true"):
                 return
-    except OSError as exc:
+            answer = gcs_answer(sock, f"{host}:{port}", deadline, ask_gcs=plain and not client)
+    except (OSError, UnicodeError) as exc:  # UnicodeError: a host name IDNA cannot encode ('..', a 64-letter label)
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else f"{exc}"
         raise DrsplatError(
-            f"cannot reach a Ray cluster at {address} ({exc.strerror or exc}); start one with `ray start --head` "
+            f"cannot reach a Ray cluster at {address} ({reason}); start one with `ray start --head` "
             f"and pass the address it prints, or use --ray with no address for a local cluster"
         ) from None
+    if answer == "gcs" or (answer == "grpc" and (client or not plain)):
+        return
+    start_hint = "pass the address `ray start --head` prints, or use --ray with no address for a local cluster"
+    if answer == "grpc":
+        raise DrsplatError(f"{address} answers gRPC but is not a Ray cluster's GCS (it does not give its cluster id: a "
+                           f"raylet's or another service's port?); {start_hint}")
+    if answer == "grpc_silent":
+        raise DrsplatError(f"{address} answers HTTP/2 but not the cluster-id call every Ray GCS answers within "
+                           f"{timeout:g} s (another service on that port?); {start_hint}")
     raise DrsplatError(f"{address} accepts a connection but does not answer as a Ray cluster does (its GCS speaks gRPC, and no gRPC "
-                       f"answer to HTTP/2's preface came within {timeout:g} s: another service on that port?); pass the address "
-                       "`ray start --head` prints, or use --ray with no address for a local cluster")
+                       f"answer to HTTP/2's preface came within {timeout:g} s: another service on that port?); {start_hint}")
 
 
 def connect(address: str | None, *, num_cpus: int | None = None, object_store_memory: int | None = None) -> bool:

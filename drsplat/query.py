@@ -386,7 +386,10 @@ def select(scores: np.ndarray, threshold: float, assigned: np.ndarray | None = N
     """Boolean selection scores >= threshold: [N] -> [N] (NaN never selected), among the Gaussians
     `assigned` [N] bool (`LanguageField.assigned`) when given: one without a feature scores 0 as a
     cosine and as a relevancy, which a threshold at or below it would otherwise select. Float32
-    scores meet the threshold in float32 (`thresholds_as_compared`)."""
+    scores meet the threshold in float32 (`thresholds_as_compared`). A NaN threshold is refused: it would select
+    nothing without a word (round 91d F4); ±inf select none / all."""
+    if np.isnan(np.asarray(threshold, np.float64)).any():
+        raise ValueError(f"the threshold is {threshold!r}, which selects nothing: give a number (-inf selects every Gaussian)")
     picked = np.asarray(scores) >= thresholds_as_compared(threshold, scores)
     return picked if assigned is None else picked & assigned
 
@@ -476,8 +479,8 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
     best, best_score = _argmax_scores(field, queries, lut_bits, device)
     labels = np.where(best < n_labels, best, -1).astype(np.int32)
     labels[~field.assigned()] = -1  # unassigned (0) and non-finite features (they score 0; read_field warns)
-    if min_score is not None:
-        labels[best_score < min_score] = -1
+    if min_score is not None:  # met as `select` meets a threshold, whatever min_score's type (round 91d F3: NumPy 2 compared a
+        labels[best_score < thresholds_as_compared(min_score, best_score)] = -1  # float in float32, an np.float64 in float64)
     return Segmentation(labels=labels, scores=best_score.astype(np.float32))
 
 

@@ -719,7 +719,8 @@ def test_view_hook_survives_pickling(hard_tiny):
         np.testing.assert_array_equal(getattr(s1, name), getattr(s2, name))
 
 
-@pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views", "binary header", "missing"])
+@pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views", "binary header", "missing",
+                                    "compression method 99", "encrypted flag"])
 def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_path, damage, caplog):
     """A damaged or foreign `.aggregate.npz` beside the log: one warning, the run starts over and equals a
     fresh one (its headers are checked before anything is read, so a huge shape cannot allocate). The warning
@@ -747,6 +748,17 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
         np.savez(snapshot.open("wb"), **{**arrays, "views": np.int64(-3)})
     elif damage == "missing":
         snapshot.unlink()
+    elif damage in ("compression method 99", "encrypted flag"):  # round 91a F5: zipfile's NotImplementedError, RuntimeError
+        raw = bytearray(snapshot.read_bytes())
+        for signature, method_at, flags_at in ((b"PK\x03\x04", 8, 6), (b"PK\x01\x02", 10, 8)):  # local and central headers
+            at = raw.find(signature)
+            while at >= 0:
+                if damage == "encrypted flag":
+                    raw[at + flags_at] |= 1
+                else:
+                    raw[at + method_at:at + method_at + 2] = (99).to_bytes(2, "little")
+                at = raw.find(signature, at + 4)
+        snapshot.write_bytes(bytes(raw))
     elif damage == "binary header":
         with zipfile.ZipFile(snapshot, "w") as archive:
             for name, value in arrays.items():

@@ -324,17 +324,26 @@ def test_an_address_that_refuses_the_driver_names_ray_token_authentication(monke
     assert "check the token" in auth_hint()
 
 
-@pytest.mark.parametrize("kind", ["http", "silent"])
-def test_an_address_that_is_not_a_ray_cluster_is_one_clear_error_at_once(kind, monkeypatch):
-    """Round 90c F1: `--ray HOST:PORT` of a server that accepts connections but is not Ray's GCS (an HTTP server, a
-    port that never answers) hung `register` in ray.init (over 420 s, a first Ctrl-C unheard); the address is now
-    probed with HTTP/2's preface, which every gRPC server answers, and refused within the probe's timeout. The
-    positive case, a real GCS, is every test that connects to a `ray.cluster_utils.Cluster` by its address."""
+def _frame(kind: int, flags: int, stream: int, payload: bytes = b"") -> bytes:
+    return len(payload).to_bytes(3, "big") + bytes([kind, flags]) + stream.to_bytes(4, "big") + payload
+
+
+GCS_REPLY = bytes([0x0A, 0x00, 0x12, 28]) + bytes(range(28))  # GetClusterIdReply: an empty status, a 28-byte cluster id
+SERVER_SETTINGS = _frame(4, 0, 0, bytes([0, 3, 0, 0, 0, 100]))  # MAX_CONCURRENT_STREAMS 100
+ANSWERS = {  # what a server sends once the probe's bytes came
+    "http": b"HTTP/1.1 400 Bad Request\r\n\r\n",
+    "silent": b"",
+    "garbage with a 4th byte of 4": b"ABC\x04garbage-garbage",  # round 91a F3: passed a probe that read one byte
+    "SETTINGS, then nothing": SERVER_SETTINGS,  # an HTTP/2 server that is not gRPC (round 91a F3: ray.init hung)
+    "a gRPC error (a raylet's port)": SERVER_SETTINGS + _frame(1, 0x5, 1, b"\x88"),  # trailers only: the call failed
+    "a reply that is no cluster id": SERVER_SETTINGS + _frame(1, 0x4, 1, b"\x88") + _frame(0, 0, 1, bytes([0, 0, 0, 0, 2, 0x0A, 0])),
+}
+
+
+def _serve_once(answer: bytes):
+    """A listener on 127.0.0.1 that sends `answer` to its first connection once the probe's bytes came, then waits."""
     import socket
 
-    from drsplat.cluster import check_reachable
-
-    monkeypatch.delenv("RAY_USE_TLS", raising=False)
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
     listener.listen(1)
@@ -343,21 +352,65 @@ def test_an_address_that_is_not_a_ray_cluster_is_one_clear_error_at_once(kind, m
     def serve():
         conn, _ = listener.accept()
         with conn:
-            if kind == "http":
-                conn.recv(64)
-                conn.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n")
+            if answer:
+                conn.recv(1024)
+                conn.sendall(answer)
             served.wait(10)
 
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
-    address = f"127.0.0.1:{listener.getsockname()[1]}"
+    return f"127.0.0.1:{listener.getsockname()[1]}", served, thread, listener
+
+
+@pytest.mark.parametrize("kind", list(ANSWERS))
+def test_an_address_that_is_not_a_ray_cluster_is_one_clear_error_at_once(kind, monkeypatch):
+    """Round 90c F1: `--ray HOST:PORT` of a server that accepts connections but is not Ray's GCS (an HTTP server, a
+    port that never answers) hung `register` in ray.init (over 420 s, a first Ctrl-C unheard). Round 91a F3: a probe
+    that asked only for an HTTP/2 SETTINGS frame (by one byte of it) was passed by garbage, by an HTTP/2 server that
+    is not gRPC (ray.init hung) and by a raylet's port (25 s of Ray's errors, then a token hint). The address is now
+    asked the GCS's cluster id, and refused within the probe's timeout. The positive case, a real GCS, is every test
+    that connects to a `ray.cluster_utils.Cluster` by its address, and the fake GCS below."""
+    from drsplat.cluster import check_reachable
+
+    monkeypatch.delenv("RAY_USE_TLS", raising=False)
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    address, served, thread, listener = _serve_once(ANSWERS[kind])
     try:
-        with pytest.raises(DrsplatError, match=rf"{address} accepts a connection but does not answer as a Ray cluster does"):
+        started = time.monotonic()
+        with pytest.raises(DrsplatError, match=rf"^{address} (accepts a connection but does not answer as a Ray cluster does|"
+                                               rf"answers HTTP/2 but not the cluster-id call|answers gRPC but is not a Ray cluster's GCS)"):
             check_reachable(address, timeout=1.0)
+        assert time.monotonic() - started < 5.0  # the timeout bounds the whole probe, not each read
     finally:
         served.set()
         thread.join(5)
         listener.close()
+
+
+def test_a_server_that_gives_a_cluster_id_passes_the_probe(monkeypatch):
+    """The probe's positive case without Ray: SETTINGS, then the reply's HEADERS and a DATA frame holding a
+    GetClusterIdReply with a cluster id, as Ray's GCS answers (checked by hand against a real GCS: 1 ms)."""
+    from drsplat.cluster import check_reachable
+
+    monkeypatch.delenv("RAY_USE_TLS", raising=False)
+    monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    message = bytes([0]) + len(GCS_REPLY).to_bytes(4, "big") + GCS_REPLY
+    address, served, thread, listener = _serve_once(SERVER_SETTINGS + _frame(1, 0x4, 1, b"\x88") + _frame(0, 0, 1, message))
+    try:
+        check_reachable(address, timeout=2.0)
+    finally:
+        served.set()
+        thread.join(5)
+        listener.close()
+
+
+@pytest.mark.parametrize("host", ["..", "a" * 64 + ".example"])
+def test_a_host_name_that_cannot_be_encoded_is_one_clear_error(host):
+    """Round 91a F4: `--ray '..:6379'` or a label over 63 letters ended in a UnicodeError traceback (IDNA's)."""
+    from drsplat.cluster import check_reachable
+
+    with pytest.raises(DrsplatError, match=rf"^cannot reach a Ray cluster at {host}:6379 \("):
+        check_reachable(f"{host}:6379", timeout=1.0)
 
 
 def test_rays_advice_names_drsplats_flag(monkeypatch):

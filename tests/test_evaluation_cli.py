@@ -657,7 +657,7 @@ def test_eval_iou_voxel_grid_past_the_free_memory_is_a_usage_error(registered, c
     ["bench", "register", "--engine", "torch", "--profile-views", "1", "--trace", "{victim}"],
     ["bench", "scale", "--json", "{victim}"],
 ], ids=["eval-iou", "eval-scannet", "eval-lerf", "pseudolabels", "bench-budget", "bench-register", "bench-register-trace", "bench-scale"])
-@pytest.mark.parametrize("suffix", [".ply", ".SPZ", ".npy"])
+@pytest.mark.parametrize("suffix", [".ply", ".SPZ", ".npy", ".pth", ".pcd"])  # round 91a F2: checkpoints and point clouds
 def test_json_outputs_named_as_another_kind_of_file_are_refused(registered, tmp_path, capsys, argv, suffix):
     """Round 89c F4: a JSON output named like a scene (`--json reg.ply`) replaced the registered PLY with JSON,
     exit 0, while a .npy output of that name was refused; every JSON flag refuses such a name now, as the
@@ -672,6 +672,27 @@ def test_json_outputs_named_as_another_kind_of_file_are_refused(registered, tmp_
     assert exited.value.code == 2
     err = capsys.readouterr().err
     assert f"'{victim}': this output is JSON text; a {suffix} name would hold it (name it .json)" in err, err
+
+
+def test_an_output_named_as_its_kind_but_linked_to_another_kind_of_file_is_refused(registered, tmp_path, capsys):
+    """Round 91a F1: `--json link.json`, a link to a scene, replaced the scene with JSON, exit 0: the name was checked,
+    not the file it writes to. The same for a .npy output (`check_npy_name`)."""
+    from drsplat.cli import build_parser
+    from drsplat.commands.common import check_npy_name
+    from drsplat.errors import UsageError
+
+    r = registered
+    victim = tmp_path / "victim.ply"
+    victim.write_bytes(r["ply"].read_bytes())
+    for name in ("link.json", "link.npy"):
+        (tmp_path / name).symlink_to(victim)
+    with pytest.raises(SystemExit) as exited:
+        build_parser().parse_args(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--json", str(tmp_path / "link.json")])
+    assert exited.value.code == 2
+    assert "link.json': this output is JSON text; a link to a .ply file would hold it (name it .json)" in capsys.readouterr().err
+    with pytest.raises(UsageError, match=r"link\.npy: this output is a \.npy array; a link to a \.ply file would hold one"):
+        check_npy_name("--scores", tmp_path / "link.npy")
+    assert victim.read_bytes() == r["ply"].read_bytes()
 
 
 def test_json_output_named_as_a_scene_leaves_the_scene_as_it_was(registered, tmp_path, capsys):
@@ -787,7 +808,24 @@ def test_eval_lerf_unnamed_category_names_its_annotation_file_and_object(registe
     err = capsys.readouterr().err
     assert f"orbit_000.json: field 'objects[1].category': category {wrong!r} is not among the 8 names of " in err, err
     assert "label_names.json" in err and "Traceback" not in err
-    assert (f"the names hold {first!r}: the spellings differ in blanks or case" in err) == (spelling != "missing")
+    assert (f"the names hold {first!r}: the spellings differ in blanks, case or Unicode form" in err) == (spelling != "missing")
+
+
+def test_a_category_in_another_unicode_form_is_said_to_be_one(tmp_path):
+    """Round 91a F6: a names file with "café" (é one code point) and an annotation with "cafe" + a combining accent
+    print alike, and the error said only that 'café' was not among the names. Both are shown escaped now."""
+    from types import SimpleNamespace
+
+    from drsplat.commands.eval import check_categories_named
+    from drsplat.errors import InputError
+
+    decomposed = "cafe\u0301"
+    view = SimpleNamespace(masks={decomposed: None}, skipped={}, path=tmp_path / "frame_00001.json", first_object={decomposed: 3})
+    with pytest.raises(InputError) as raised:
+        check_categories_named([view], [decomposed], ["table", "caf\u00e9"], tmp_path / "names.json")
+    text = str(raised.value)
+    assert "frame_00001.json" in text and "objects[3].category" in text
+    assert "the names hold 'caf\\xe9', this is 'cafe\\u0301': the same letters in another Unicode form" in text, text
 
 
 def test_eval_lerf_leaves_degenerate_ground_truth_out_of_the_mean(registered, tmp_path, capsys):
@@ -901,3 +939,16 @@ def test_eval_iou_takes_the_bundled_demo_as_a_synthetic_dataset(capsys):
     out = capsys.readouterr().out
     seg = next(line for line in out.splitlines() if line.startswith("seg   volume"))
     assert float(seg.split()[2]) > 0.9, out
+
+
+def test_eval_iou_says_which_scene_it_counts(registered, capsys):
+    """Round 91b F4: the table's first line named the registered PLY with the original scene's Gaussian count (2763
+    where the registered file holds 2744); it names both now."""
+    from drsplat.scene import load_ply
+
+    r = registered
+    registered_rows, scene_rows = load_ply(r["ply"]).num_gaussians, load_ply(r["ds"] / "scene.ply").num_gaussians
+    assert registered_rows < scene_rows
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"])]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith(f"{r['ply'].name} on the {scene_rows} Gaussians of scene.ply ({registered_rows} registered), "), first

@@ -3469,3 +3469,37 @@ def test_a_dash_output_is_refused_as_standard_output_is_not_read_from_it(tmp_pat
     code, err = run_cli(["query", world["reg"], "--embedding", world["q"], "--scores", "-"], capsys)
     assert code == 2 and "'-' is not read as standard output here: give /dev/stdout" in err, err
     assert not (tmp_path / "-").exists()
+
+
+@pytest.mark.parametrize("case", ["every mask id -1", "every Gaussian transparent"])
+def test_a_registration_that_assigns_nothing_keeps_no_checkpoint_and_blames_the_cause(world, tmp_path, capsys, case):
+    """Round 91c F2: a scene of transparent Gaussians, or masks that cover nothing, ended in the right error, but kept a
+    checkpoint of every view that a rerun resumed into the same error, and the transparent scene's first warning
+    blamed the camera frame (nerfstudio's). No checkpoint is left now, and the warning names the opacities."""
+    import shutil
+
+    from drsplat.scene import GaussianScene, load_ply, save_ply
+
+    ds = world["ds"]
+    features, scene_path = ds / "features", ds / "scene.ply"
+    if case == "every mask id -1":
+        features = tmp_path / "features"
+        features.mkdir()
+        for seg in sorted((ds / "features").glob("*_s.npy")):
+            np.save(features / seg.name, np.full(np.load(seg).shape, -1, np.int32))
+            shutil.copy(ds / "features" / seg.name.replace("_s.npy", "_f.npy"), features)
+    else:
+        s = load_ply(scene_path)
+        scene_path = tmp_path / "scene.ply"
+        save_ply(GaussianScene(s.means, s.quats, s.log_scales, np.full(s.num_gaussians, -30.0, np.float32), s.sh, dict(s.extra),
+                               list(s.comments)), scene_path)
+    out = tmp_path / "out" / "reg.ply"
+    argv = ["register", str(scene_path), "--source", str(ds), "--features", str(features), "--out", str(out), "--no-progress"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "no Gaussian received a language feature" in err or "no Gaussian kept a language feature" in err, err
+    assert "kept the registration checkpoint" not in err and "Traceback" not in err, err
+    leftovers = sorted(p.name for p in out.parent.iterdir()) if out.parent.exists() else []
+    assert leftovers == [], leftovers  # no checkpoint, no statistics snapshot
+    if case == "every Gaussian transparent":
+        assert "Gaussians have an opacity under 1/255, which draws nothing" in err and "nerfstudio" not in err, err

@@ -770,6 +770,46 @@ def test_bytes_after_an_ivfpq_codebook_are_a_warning_too(data, tmp_path, caplog,
     assert "joined.faiss: 5 bytes follow the codebook's last field and are ignored" in caplog.text
 
 
+def _direct_map_type_at(whole: bytes, d: int, nlist: int) -> int:
+    """The offset of an IwPQ file's direct map type byte: fourcc, index header (d int32, ntotal, two dummies, is_trained,
+    metric), nlist, nprobe, the flat quantiser's fourcc and header, its centroid vector."""
+    header = 4 + 4 + 8 + 8 + 8 + 1 + 4
+    at = header + 8 + 8 + header  # the IVF's header, nlist, nprobe, then the quantiser's
+    assert whole[:4] == b"IwPQ" and int.from_bytes(whole[at:at + 8], "little") == nlist * d
+    return at + 8 + 4 * nlist * d
+
+
+def test_an_ivfpq_codebook_with_a_hashtable_direct_map_is_read_whole(data, tmp_path):
+    """Round 91d F1: the direct map's type byte was read and not checked, and a hashtable's (id, index) pairs, which
+    follow its array, were not skipped: a 2.6 MB file whose type byte said "hashtable" led faiss to sizes the check
+    never saw (2.25 GB allocated). A real hashtable map is walked now (and loads), an unknown type is refused, and
+    a corrupt file's sizes behind the pairs are checked against the file."""
+    import faiss
+
+    x = np.ascontiguousarray(data[0][5:])
+    index = faiss.IndexIVFPQ(faiss.IndexFlatIP(x.shape[1]), x.shape[1], 4, 8, 8, faiss.METRIC_INNER_PRODUCT)
+    index.train(x)
+    index.set_direct_map_type(faiss.DirectMap.Hashtable)
+    index.add(x[:50])
+    whole = faiss.serialize_index(index).tobytes()
+    (tmp_path / "hash.faiss").write_bytes(whole)
+    book = load_codebook(tmp_path / "hash.faiss")
+    assert book.m == 8 and book.centroids.shape == (8, 256, x.shape[1] // 8)
+    at = _direct_map_type_at(whole, x.shape[1], 4)
+    assert whole[at] == 2
+    (tmp_path / "three.faiss").write_bytes(whole[:at] + b"\x03" + whole[at + 1:])
+    with pytest.raises(InputError, match=r"direct map type 3; faiss knows 0 \(none\), 1 \(array\) and 2 \(hashtable\)"):
+        load_codebook(tmp_path / "three.faiss")
+    pairs_at = at + 1 + 8 + 8 * int.from_bytes(whole[at + 1:at + 9], "little")
+    huge = whole[:pairs_at] + (1 << 40).to_bytes(8, "little") + whole[pairs_at + 8:]  # pairs a terabyte long
+    (tmp_path / "huge.faiss").write_bytes(huge)
+    with pytest.raises(InputError, match=r"direct map hashtable declares 1099511627776 values .* the file is truncated or corrupt"):
+        load_codebook(tmp_path / "huge.faiss")
+    (tmp_path / "legacy.faiss").write_bytes(b"IvPQ" + whole[4:])
+    with pytest.raises(InputError, match=r"pre-2018 layout \(type code IvPQ\), which drsplat does not read"):
+        load_codebook(tmp_path / "legacy.faiss")
+
+
 def test_codebook_dimension_mismatch_is_an_input_error(data, tmp_path):
     book = train_codebook(data[0][5:], m=8)
     book.save(tmp_path / "cb.faiss")

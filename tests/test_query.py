@@ -795,6 +795,44 @@ def test_segment_refuses_a_min_score_that_is_not_a_finite_cosine(bad):
         segment(field, np.eye(4, dtype=np.float32)[:2], min_score=bad)
 
 
+def test_segment_cuts_at_a_min_score_by_its_value_not_its_type(fields, world):
+    """Round 91d F3: a min_score just above a float32 score k (float32(t) == k) cut k's Gaussians when given as an
+    np.float64 and kept them as a Python float (NumPy 2 compares a float in float32, an np.float64 in float64). Both
+    now meet the scores as `select` meets a threshold: in float32, so a score equal to float32(t) is kept."""
+    field = fields["exact"]
+    _, _, _, dirs = world
+    labels = dirs[:3]
+    plain = segment(field, labels)
+    k = float(np.sort(plain.scores[plain.labels >= 0])[len(plain.scores) // 2])
+    t = float(np.nextafter(np.float64(k), 2.0))  # above k in float64, k in float32
+    assert np.float32(t) == np.float32(k) and t > k
+    as_float, as_numpy = segment(field, labels, min_score=t), segment(field, labels, min_score=np.float64(t))
+    np.testing.assert_array_equal(as_float.labels, as_numpy.labels)
+    assert np.all(as_numpy.labels[plain.scores == np.float32(k)] >= 0)  # k meets float32(t)
+
+
+def test_select_refuses_a_nan_threshold():
+    """Round 91d F4: select(scores, nan) selected nothing without a word; ±inf still select none / all."""
+    from drsplat.query import select
+
+    scores = np.array([0.1, 0.5, np.nan], np.float32)
+    with pytest.raises(ValueError, match="the threshold is nan, which selects nothing"):
+        select(scores, float("nan"))
+    assert select(scores, -np.inf).tolist() == [True, True, False] and not select(scores, np.inf).any()
+
+
+def test_a_threshold_just_outside_the_range_is_shown_as_given(capsys):
+    """Round 91d F5: `--threshold 1.0000001` was refused as "1 is outside [-1, 1]", a value that is inside."""
+    from drsplat.cli import build_parser
+
+    for argv, said in ((["query", "x.ply", "--embedding", "e.npy", "--threshold", "1.0000001"], "1.0000001 is outside [-1, 1]"),
+                       (["segment", "x.ply", "--min-score", "1.0000001"], "1.0000001 is out of range")):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(argv)
+        err = capsys.readouterr().err
+        assert said in err, err
+
+
 @pytest.mark.parametrize("bad", [0.0, np.nan, np.inf])
 def test_a_field_refuses_a_query_row_without_a_direction_naming_it(bad):
     """Round 37 left it as found: `LanguageField.scores` made a zero or NaN query row a zero row,

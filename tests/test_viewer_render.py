@@ -715,3 +715,21 @@ def test_moving_subsample_equals_a_full_render_of_the_same_splats(state, gl_cont
         alone.release()
     assert reference.mean() > 5, "the subset is visible"
     assert np.abs(sub - reference).mean() < 0.3
+
+
+def test_missing_gl_libraries_are_one_error_line(monkeypatch):
+    """Round 91b F1: without libEGL (or libGL) glcontext raised a bare Exception, which `--screenshot` showed as a
+    20-line traceback; it is a RuntimeError of one line naming the packages now (the launcher logs those, exit 1)."""
+    from viewer.renderer import create_offscreen_context, gl_context
+
+    monkeypatch.setenv("GLCONTEXT_LINUX_LIBEGL", "/nonexistent/drsplat-test/libEGL.so.1")
+    with pytest.raises(RuntimeError) as raised:
+        create_offscreen_context()
+    text = str(raised.value)
+    assert "\n" not in text and "/nonexistent/drsplat-test/libEGL.so.1" in text and "apt install libegl1 libgl1 libgl1-mesa-dri" in text, text
+
+    def no_display():
+        raise RuntimeError("no display")
+
+    with pytest.raises(RuntimeError, match="^no display$"):  # moderngl's own RuntimeError passes as it was
+        gl_context(no_display, "a context")

@@ -31,7 +31,7 @@ from drsplat.utils import atomic_path, describe_os_error, fifo_reader
 from viewer.camera import ViewController, camera_for_size, frustum_segments, project_segments
 from viewer.panels import Panels
 from viewer.paths import default_layout_path, image_format, typed_path
-from viewer.renderer import (GL_REQUIRE, Blitter, OffscreenTarget, SplatRenderer, create_offscreen_context, fit_within, max_image_side, preload_torch,
+from viewer.renderer import (GL_REQUIRE, Blitter, gl_context, OffscreenTarget, SplatRenderer, create_offscreen_context, fit_within, max_image_side, preload_torch,
                              render_offscreen)
 from viewer.settings import FLY_SPEED_RANGE, RENDER_SCALE_RANGE
 from viewer.state import CAMERAS_BEING_CHECKED, ViewerState, resolved_folder
@@ -165,7 +165,7 @@ class ViewerApp:
         self.state = state
         self.platform = platform or os.environ.get("DRSPLAT_VIEWER_PLATFORM")
         self.window = self._create_window(width, height, title)
-        self.ctx = moderngl.create_context(require=GL_REQUIRE)
+        self.ctx = gl_context(lambda: moderngl.create_context(require=GL_REQUIRE), "the window's OpenGL context")
         self.input = InputState(last_time=time.perf_counter())
         self._dropped: list[str] = []
         self._install_event_callbacks()

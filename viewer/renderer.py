@@ -117,10 +117,25 @@ def preload_torch() -> None:
         pass
 
 
+GL_LIBRARIES_HINT = "on Debian/Ubuntu: apt install libegl1 libgl1 libgl1-mesa-dri"
+
+
+def gl_context(create, what: str) -> moderngl.Context:
+    """`create()`'s OpenGL context, or a RuntimeError of one line: glcontext raises a bare Exception when it cannot load
+    libEGL or libGL (round 91b F1: a 20-line traceback where `--screenshot` promises one error line)."""
+    try:
+        return create()
+    except RuntimeError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - glcontext's own class for a library it could not load
+        raise RuntimeError(f"cannot create {what} ({exc}): the system's OpenGL libraries are missing or unusable; "
+                           f"{GL_LIBRARIES_HINT}") from None
+
+
 def create_offscreen_context() -> moderngl.Context:
     """A standalone EGL context (no window, no X server); needs GL 4.3 for the compute pass."""
     preload_torch()
-    return moderngl.create_standalone_context(backend="egl", require=GL_REQUIRE)
+    return gl_context(lambda: moderngl.create_standalone_context(backend="egl", require=GL_REQUIRE), "a headless OpenGL context (EGL)")
 
 
 class SplatRenderer:

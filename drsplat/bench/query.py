@@ -58,7 +58,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--max-float32", type=count_arg, default="2M", help="skip the float32 baseline above this N (it needs 2 KB per Gaussian)")
     p.add_argument("--repeats", type=positive_int, default=5, help="timed repeats (median); fewer are used above 1M")
     p.add_argument("--seed", type=int_range(0, FAISS_SEED_MAX), default=0, help="random seed, 0..2^31-1 (default: 0)")
-    p.add_argument("--plot", type=output_file, default=Path("bench_query.png"), help="PNG of speed against error")
+    p.add_argument("--plot", type=output_file, default=Path("bench_query.png"), help="PNG of speed against error (default: bench_query.png in the working folder, always written)")
     p.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
                    help="also time the torch scorer on this device against the numba kernels (ratio and max |Δ| per backend)")
     p.set_defaults(func=run)

@@ -22,8 +22,10 @@ import numpy as np
 from drsplat.cameras import RESOLUTION_DIVISORS
 from drsplat.defaults import DEFAULT_PRINCIPAL_POINT, MAX_TOPK, PRINCIPAL_POINTS
 from drsplat.features.masks.base import LEVELS
+from drsplat.eval.datasets import POINT_CLOUD_SUFFIXES
 from drsplat.errors import DrsplatError, InputError, UsageError, hidden_character, one_line, shown_path
 from drsplat.memory import parse_size
+from drsplat.splat_formats import SCENE_SUFFIXES
 from drsplat.lang import REGISTERED_IS_PLY, LanguageField, read_field
 from drsplat.lang.plyformat import strip_field
 from drsplat.scene import GaussianScene, counted
@@ -149,6 +151,13 @@ def refuse_repeats(flag: str, values: Sequence, shown: Callable[[object], str] =
         raise UsageError(f"{flag}: {', '.join(map(shown, repeated))} given twice")
 
 
+def shown_number(value: float) -> str:
+    """`value` as short as %g writes it when that is the same number, else in full (round 91d F5: %g wrote 1.0000001
+    as "1 is outside [-1, 1]", a value that is inside)."""
+    short = f"{value:g}"
+    return short if float(short) == value else repr(value)
+
+
 def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False) -> Callable[[str], float]:
     """argparse type: a finite float in [lo, hi] ((lo, hi] with lo_open, [lo, hi) with hi_open)."""
 
@@ -157,7 +166,7 @@ def float_range(lo: float | None = None, hi: float | None = None, *, lo_open: bo
         low_bad = lo is not None and (value <= lo if lo_open else value < lo)
         high_bad = hi is not None and (value >= hi if hi_open else value > hi)
         if low_bad or high_bad:
-            raise argparse.ArgumentTypeError(f"{value:g} is out of range: expected {_describe(lo, hi, lo_open, hi_open)}")
+            raise argparse.ArgumentTypeError(f"{shown_number(value)} is out of range: expected {_describe(lo, hi, lo_open, hi_open)}")
         return value
 
     parse.__name__ = "number"
@@ -215,15 +224,24 @@ def output_file(text: str) -> Path:
     return path_value(text)
 
 
-KNOWN_FILE_SUFFIXES = (".ply", ".splat", ".spz", ".faiss", ".json", ".npy", ".npz", ".png", ".jpg", ".jpeg")  # what drsplat and 3DGS tools read by name
+# what drsplat and 3DGS tools read by name: scenes and trainer checkpoints, point clouds (round 91a F2: `--json x.pth`
+# replaced a checkpoint), codebooks, arrays, images, COLMAP's binary models
+KNOWN_FILE_SUFFIXES = (*SCENE_SUFFIXES, *POINT_CLOUD_SUFFIXES, ".faiss", ".json", ".npy", ".npz", ".png", ".jpg", ".jpeg", ".bin")
 
 
-def named_as_another_kind(path: Path | str | None, own_suffix: str) -> bool:
-    """Whether an output of kind `own_suffix` ('.npy', '.json') is named with another suffix that drsplat or a 3DGS tool
-    reads by name (KNOWN_FILE_SUFFIXES, in any case): what it holds would be read as that kind (a scene overwritten
-    by JSON, a .npy read as a PLY)."""
-    suffix = Path(path).suffix.lower() if path is not None else ""
-    return suffix in KNOWN_FILE_SUFFIXES and suffix != own_suffix
+def another_kind_name(path: Path | str | None, own_suffix: str) -> str | None:
+    """Why an output of kind `own_suffix` ('.npy', '.json') named `path` would be read as another kind of file, or
+    None: its name ("a .ply name") or, for a link, the file it writes to ("a link to a .ply file", round 91a F1:
+    `--json link.json` replaced the scene the link named) has a suffix drsplat or a 3DGS tool reads by name
+    (KNOWN_FILE_SUFFIXES, in any case): a scene overwritten by JSON, a .npy read as a PLY."""
+    if path is None:
+        return None
+    suffix, target = Path(path).suffix, Path(os.path.realpath(path)).suffix
+    if suffix.lower() in KNOWN_FILE_SUFFIXES and suffix.lower() != own_suffix:
+        return f"a {suffix} name"
+    if target.lower() in KNOWN_FILE_SUFFIXES and target.lower() != own_suffix:
+        return f"a link to a {target} file"
+    return None
 
 
 def check_npy_name(flag: str, path: Path | None) -> None:
@@ -231,17 +249,19 @@ def check_npy_name(flag: str, path: Path | None) -> None:
     (`scores.ply`), since an array under it would be read as that type (round 54: `query --scores
     o.ply` wrote .npy bytes as o.ply; `--out o.npy` was refused). Called after the input guard, which
     says first when the name is one of the command's inputs."""
-    if named_as_another_kind(path, ".npy"):
-        raise UsageError(f"{flag} {shown_path(path)}: this output is a .npy array; a {path.suffix} name would hold one (name it .npy)")
+    other = another_kind_name(path, ".npy")
+    if other is not None:
+        raise UsageError(f"{flag} {shown_path(path)}: this output is a .npy array; {other} would hold one (name it .npy)")
 
 
 def json_output_file(text: str) -> Path:
     """argparse type of a JSON output (`output_file`), refused when named as another kind of file drsplat or a 3DGS
-    tool reads (`named_as_another_kind`; round 89c F4: `eval iou --json scene.ply` replaced a registered PLY with
+    tool reads (`another_kind_name`; round 89c F4: `eval iou --json scene.ply` replaced a registered PLY with
     JSON, exit 0, while a .npy output of that name was refused)."""
     path = output_file(text)
-    if named_as_another_kind(path, ".json"):
-        raise argparse.ArgumentTypeError(f"{text!r}: this output is JSON text; a {path.suffix} name would hold it (name it .json)")
+    other = another_kind_name(path, ".json")
+    if other is not None:
+        raise argparse.ArgumentTypeError(f"{text!r}: this output is JSON text; {other} would hold it (name it .json)")
     return path
 
 
@@ -254,7 +274,7 @@ def threshold_value(text: str) -> str:
         return text
     value = float(_number(text, float))
     if not -1.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"{value:g} is outside [-1, 1], the range of cosine and relevancy scores (or use 'auto')")
+        raise argparse.ArgumentTypeError(f"{shown_number(value)} is outside [-1, 1], the range of cosine and relevancy scores (or use 'auto')")
     return repr(value)
 
 

@@ -14,6 +14,7 @@ import argparse
 import json
 import logging
 import math
+import unicodedata
 from pathlib import Path
 
 import numpy as np
@@ -514,7 +515,10 @@ def _evaluate_and_write(args, scene, field, gt: np.ndarray, names: list[str], in
     absent_names = [names[i] for i in absent]
     write_json(args.json, {"scene": str(args.registered), "labels": sub_names, "absent_labels_in_argmax": absent_names,
                            "reports": [r.to_dict() for r in reports]})
-    lines = [f"{shown_path(args.registered.name)}: {scene.num_gaussians} Gaussians, {len(sub_names)} labels, "
+    # evaluated on the original scene's rows when the registered file holds fewer (round 91b F4: its count was the original's)
+    on = (f": {scene.num_gaussians} Gaussians" if index is None else
+          f" on the {scene.num_gaussians} Gaussians of {shown_path(Path(args.original).name)} ({len(index)} registered)")
+    lines = [f"{shown_path(args.registered.name)}{on}, {len(sub_names)} labels, "
              f"{int(np.count_nonzero(gt_sub >= 0))} labelled, score = {'relevancy' if args.relevancy else 'cosine'}"
              + (f"; the segmentation's argmax also over {counted(len(absent), 'label', 'labels')} absent from the ground truth" if absent else ""),
              format_reports(reports)]
@@ -702,6 +706,11 @@ def trained_cameras(scene, registered: Path) -> dict:
     return {"scene_path": checkpoint, "refinements": refinements}
 
 
+def loose_spelling(name: str) -> str:
+    """`name` up to blanks around it, case and Unicode form (NFKC): how a hint finds the name a user meant."""
+    return unicodedata.normalize("NFKC", name).strip().casefold()
+
+
 def check_categories_named(views, categories: list[str], names: list[str], names_path: Path) -> None:
     """Every annotated category must have a label name (and so a query embedding). The error names
     the first annotation file and object holding a missing category, the names file, and a spelling
@@ -712,8 +721,12 @@ def check_categories_named(views, categories: list[str], names: list[str], names
     first = missing[0]
     view = next(v for v in views if first in v.masks or first in v.skipped)
     k = view.first_object.get(first)
-    near = [n for n in names if n.strip().casefold() == first.strip().casefold()]
-    hint = f" (the names hold {near[0]!r}: the spellings differ in blanks or case)" if near else ""
+    near = [n for n in names if loose_spelling(n) == loose_spelling(first)]
+    hint = ""
+    if near and unicodedata.normalize("NFC", near[0]) == unicodedata.normalize("NFC", first):  # they print alike (round 91a F6)
+        hint = f" (the names hold {ascii(near[0])}, this is {ascii(first)}: the same letters in another Unicode form)"
+    elif near:
+        hint = f" (the names hold {near[0]!r}: the spellings differ in blanks, case or Unicode form)"
     more = f"; {len(missing) - 1} more annotated categor{'y' if len(missing) == 2 else 'ies'} lack one too: {missing[1:6]}" if len(missing) > 1 else ""
     raise InputError(view.path, f"category {first!r} is not among the {len(names)} names of {shown_path(names_path)}, so it has no "
                                 f"query embedding{hint}{more}",

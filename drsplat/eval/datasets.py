@@ -567,7 +567,7 @@ def _read_open3d_cloud(path: Path) -> tuple[np.ndarray, np.ndarray, str]:
         import open3d as o3d
     except ImportError as exc:  # most often the system library open3d links against
         raise DrsplatError(f"reading {path.suffix} point clouds needs open3d, which failed to import ({exc}); "
-                           "on Debian/Ubuntu run `apt install libusb-1.0-0`, or convert the cloud to a labelled PLY") from None
+                           "on Debian/Ubuntu run `apt install libusb-1.0-0 libgl1`, or convert the cloud to a labelled PLY") from None
 
     regular_file(path)
     cloud = o3d.io.read_point_cloud(str(path))

@@ -464,7 +464,8 @@ class Checkpoint:
                 log.warning("%s: its statistics snapshot %s is missing; its %s are redone", self.path, self.stats_path.name,
                             counted(len(self.log.records), "view", "views"))
             views, arrays = 0, {}
-        except (OSError, ValueError, KeyError, EOFError, SyntaxError, zipfile.BadZipFile) as exc:
+        # NotImplementedError, RuntimeError: zipfile's for a compression method it lacks, an encrypted member (round 91a F5)
+        except (OSError, ValueError, KeyError, EOFError, SyntaxError, zipfile.BadZipFile, NotImplementedError, RuntimeError) as exc:
             # the reader's own words quote the damaged bytes (round 89b F4): the cause is named, never the contents
             why = os_error_cause(exc) if isinstance(exc, OSError) else "its contents are damaged"
             log.warning("%s is unreadable (%s); the aggregation statistics restart with the views", self.stats_path, why)

@@ -272,6 +272,10 @@ def resolve_codebook(codebook: str, dim: int) -> Codebook | str:
     return book
 
 
+class NothingAssigned(DrsplatError):
+    """Registration ran every view and gave no Gaussian a feature (`nothing_assigned` says why)."""
+
+
 def nothing_assigned(num_views: int, features_dir: Path, out: Path | None, hint: str = "", unusable: RowFates | None = None,
                      rejected: int = 0, mode: str = "") -> str:
     """The error when registration gave no Gaussian a feature (nothing is written); hint: `unassigned_hint`'s;
@@ -472,7 +476,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
         if candidates is not None and not candidates.any():
             dropped = aggregator.rejected()
             rejected = int(np.count_nonzero(totals.positive & dropped)) if pool is None and dropped is not None else 0
-            raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), rejected=rejected, mode=asked))
+            raise NothingAssigned(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), rejected=rejected, mode=asked))
         if codebook == "scene":
             codebook = _train_scene_codebook(totals, sink if reduce is None else reduce, candidates, run.scene, cancel, show_progress)
         if reduce is None:
@@ -480,7 +484,7 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             target.open(codebook, rows_hint=n if options.keep_unassigned else int(np.count_nonzero(candidates)))
             weights, fates, blocks, sum_seconds, sum_cpu = _finish_blocks(run, aggregator, sink, target, show_progress, cancel)
             if not np.any(weights > 0):
-                raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), fates,
+                raise NothingAssigned(nothing_assigned(totals.done, run.features_dir, out, failure_hint(run, options.level), fates,
                                                     aggregator.num_rejected, asked))
             written = target.close()
         else:
@@ -488,7 +492,9 @@ def _register_locked(run: Run, target: Target, codebook, lock: RunLock | None, t
             reducer_seconds = (task_seconds, sum_seconds)
     except BaseException as exc:
         target.abort()
-        if ckpt is not None and ckpt.leave(_why(exc)):
+        if ckpt is not None and isinstance(exc, NothingAssigned):
+            ckpt.remove()  # every view is logged: a rerun with the same settings would end in this error again (round 91c F2)
+        elif ckpt is not None and ckpt.leave(_why(exc)):
             exc.checkpoint_said = True  # the command's last line need not say it again (drsplat.commands.register.interrupted_note)
         raise
     finally:
@@ -816,7 +822,7 @@ def _reduce_blocks(reduce: BlockReduce, run: Run, aggregator: Aggregator, codebo
     Returns what `_finish_blocks` does, the rows written and the reducer tasks' seconds (summed)."""
     parts, weights = reduce.finish(run.scene, codebook, aggregator)
     if not np.any(weights > 0):
-        raise DrsplatError(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views, run.options.near_plane, run.options.near_plane_decided),
+        raise NothingAssigned(nothing_assigned(totals.done, run.features_dir, out, unassigned_hint(run.scene, run.views, run.options.near_plane, run.options.near_plane_decided),
                                             sum((p.fates for p in parts), RowFates()), sum(p.rejected for p in parts), asked))
     written = assemble_parts(Path(reduce.job.out), parts, codebook)  # the codebook written after the body, before the rename
     return (weights, sum((p.fates for p in parts), RowFates()), len(parts), sum(p.sum_seconds for p in parts), sum(p.sum_cpu_seconds for p in parts),
