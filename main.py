@@ -2,14 +2,20 @@
 
 import sys
 
-from drsplat.console import prefer_passive_openmp_waits
+from drsplat.console import ignore_stop_signals, interrupted_start, prefer_passive_openmp_waits
 
 prefer_passive_openmp_waits()  # before the viewer's imports load numba's and torch's OpenMP runtimes
 try:
     from viewer.launch import main
 except KeyboardInterrupt:  # Ctrl-C while Python imports the viewer: before anything was opened or written
-    sys.stderr.write("drsplat viewer: interrupted while starting; nothing was done\n")
-    raise SystemExit(1) from None
+    interrupted_start("drsplat viewer")
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        code = main()
+    except KeyboardInterrupt:  # a second signal as the viewer said it was stopped, or one as main returned (round 92b)
+        ignore_stop_signals()
+        sys.stderr.write("drsplat viewer: interrupted\n")
+        code = 1
+    ignore_stop_signals()  # the work is done: a signal while torch and numba shut down is not a failure (round 92b F1)
+    sys.exit(code)

@@ -19,6 +19,7 @@ import threading
 
 from drsplat import __version__
 from drsplat.commands.common import ArgumentParser
+from drsplat.console import ignore_stop_signals
 from drsplat.errors import INTERRUPTED_NOTE, STARTING_NOTE, Cancelled, DrsplatError, UsageError, escape_hidden
 from drsplat.utils import describe_os_error
 
@@ -96,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
         with sigterm_as_interrupt():
             parser = build_parser()
     except KeyboardInterrupt:
+        if argv is None:  # run as the program (`entry`), not called with arguments: a second Ctrl-C must not cut the line (round 92b)
+            ignore_stop_signals()
         sys.stderr.write(STARTING_NOTE)
         return 1
     args, unknown = parser.parse_known_args(argv)
@@ -144,10 +147,13 @@ def entry() -> None:
     Ctrl-C or SIGTERM while the interpreter then shuts down (0.1-0.8 s) is ignored: the command's
     work is done, and such a signal killed the process with status 130 / 143 and no message, after
     a successful run too (probe round 14)."""
-    code = main()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    try:
+        code = main()
+    except KeyboardInterrupt:  # a second signal while main said it was stopped, or one as it returned (round 92b)
+        ignore_stop_signals()
+        sys.stderr.write("drsplat: interrupted\n")
+        code = 1
+    ignore_stop_signals()
     sys.exit(code)
 
 

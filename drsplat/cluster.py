@@ -133,7 +133,7 @@ def address_problem(address: str | None) -> str | None:
     if address != address.strip():
         return f"has spaces around it: expected {expected}"
     host, _, port = (target if sep else address).rpartition(":")
-    if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+    if not host or not (port.isascii() and port.isdigit()) or not 1 <= int(port) <= 65535:  # '6379²' is a digit to isdigit
         return f"is not an address: expected {expected}"
     if ":" in host and not (host.startswith("[") and host.endswith("]")):  # round 60c: '::1' read as host '::', port 1
         return f"is not an address: an IPv6 host goes in brackets, [HOST]:PORT (e.g. [::1]:6379); expected {expected}"
@@ -207,7 +207,7 @@ def is_server_preface(frame: Http2Frame | None) -> bool:
 def _hpack_literal(name: str, value: str) -> bytes:
     """One header field as HPACK's "literal without indexing, new name", no Huffman (RFC 7541, 6.2.2); names and
     values under 127 bytes (one-byte lengths)."""
-    raw_name, raw_value = name.encode("ascii"), value.encode("ascii")
+    raw_name, raw_value = name.encode("ascii"), value.encode("ascii", "replace")  # a host of other letters: '?' (no server reads it)
     return bytes([0, len(raw_name)]) + raw_name + bytes([len(raw_value)]) + raw_value
 
 
@@ -334,8 +334,9 @@ def check_reachable(address: str, timeout: float = 3.0) -> None:
     if answer == "grpc_silent":
         raise DrsplatError(f"{address} answers HTTP/2 but not the cluster-id call every Ray GCS answers within "
                            f"{timeout:g} s (another service on that port?); {start_hint}")
-    raise DrsplatError(f"{address} accepts a connection but does not answer as a Ray cluster does (its GCS speaks gRPC, and no gRPC "
-                       f"answer to HTTP/2's preface came within {timeout:g} s: another service on that port?); {start_hint}")
+    raise DrsplatError(f"{address} accepts a connection but does not answer as a Ray cluster does (its GCS speaks gRPC; to HTTP/2's "
+                       f"preface it closed the connection, sent no SETTINGS frame or nothing within {timeout:g} s: another service "
+                       f"on that port?); {start_hint}")
 
 
 def connect(address: str | None, *, num_cpus: int | None = None, object_store_memory: int | None = None) -> bool:
@@ -358,7 +359,7 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
         kwargs["address"] = address
     sigterm = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
     try:
-        with _process_state_kept():
+        with _process_state_kept(), _ctrl_c_raises():
             ray.init(**kwargs)
             elsewhere = [] if local or "py_modules" in kwargs["runtime_env"] else _nodes_elsewhere(ray)
             if elsewhere:  # the driver's folder is this host's: the nodes of other hosts get the package itself
@@ -366,6 +367,10 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
                          ", ".join(elsewhere[:3]))
                 ray.shutdown()
                 ray.init(**{**kwargs, "runtime_env": _shipped_env()})
+    except KeyboardInterrupt:
+        with contextlib.suppress(Exception):  # a half-made connection or local instance
+            ray.shutdown()
+        raise Cancelled(f"Ctrl-C while connecting to Ray ({address or 'a new local instance'}); nothing was computed") from None
     except (ConnectionError, RuntimeError, ValueError) as exc:
         hint = "" if local or address == "auto" else auth_hint()
         # Ray's own advice names its CLI's flag; drsplat's is --ray (round 90c F3)
@@ -377,6 +382,23 @@ def connect(address: str | None, *, num_cpus: int | None = None, object_store_me
         _sigterm_during_init(ray, sigterm)
     _relay_errors_to_log()
     return True
+
+
+@contextmanager
+def _ctrl_c_raises() -> Iterator[None]:
+    """Within the block (in the main thread), Ctrl-C raises KeyboardInterrupt at once, whatever handler the caller
+    installed: ray.init waits in Ray's own loops (for a GCS slow to answer), which never look at a cancel token, so a
+    command's first Ctrl-C, which only cancels its token, was unheard there (round 90c). Outside the main thread this
+    does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _sigterm_during_init(ray, handler: Callable) -> None:

@@ -406,11 +406,16 @@ def test_a_server_that_gives_a_cluster_id_passes_the_probe(monkeypatch):
 
 @pytest.mark.parametrize("host", ["..", "a" * 64 + ".example"])
 def test_a_host_name_that_cannot_be_encoded_is_one_clear_error(host):
-    """Round 91a F4: `--ray '..:6379'` or a label over 63 letters ended in a UnicodeError traceback (IDNA's)."""
-    from drsplat.cluster import check_reachable
+    """Round 91a F4: `--ray '..:6379'` or a label over 63 letters ended in a UnicodeError traceback (IDNA's). Round 92a:
+    a port of superscript digits ('6379²', digits to str.isdigit) was a bare ValueError from int()."""
+    from drsplat.cluster import check_reachable, gcs_probe_request
 
     with pytest.raises(DrsplatError, match=rf"^cannot reach a Ray cluster at {host}:6379 \("):
         check_reachable(f"{host}:6379", timeout=1.0)
+    with pytest.raises(DrsplatError, match=r"'localhost:6379²' is not an address"):
+        check_reachable("localhost:6379\u00b2", timeout=1.0)
+    # a host of fullwidth digits connects (IDNA maps them to ASCII); the request's authority must not end the probe
+    assert b"/ray.rpc.NodeInfoGcsService/GetClusterId" in gcs_probe_request("\uff11\uff12\uff17.\uff10.\uff10.\uff11:6379")
 
 
 def test_rays_advice_names_drsplats_flag(monkeypatch):
@@ -551,3 +556,38 @@ def test_every_mode_on_ray_writes_the_local_file(cluster, tmp_path_factory, engi
         assert result.num_blocks == (1 if stages.solve else 3) and result.worker_peak_rss, mode
         assert result.reducers == (not stages.solve), mode  # a check's masks are judged by the driver, its kept pairs summed by reducers
         assert on_ray.read_bytes() == local.read_bytes(), mode
+
+
+def test_a_first_ctrl_c_while_ray_connects_ends_the_connect(monkeypatch):
+    """Round 90c (left as found then): ray.init waits in Ray's own loops for a GCS slow to answer, and a command's first
+    Ctrl-C only cancelled its token, which ray.init never reads: still waiting 30 s later. The connect now ends at the
+    first Ctrl-C with Cancelled, the half-made connection shut down, and the command's own handler back in place."""
+    import signal
+
+    import ray
+
+    from drsplat.cluster import connect
+    from drsplat.utils import CancelToken, cancel_on_signals
+
+    shut = []
+
+    def slow_init(**kwargs):
+        for _ in range(400):  # 20 s of Ray's polling
+            time.sleep(0.05)
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", slow_init)
+    monkeypatch.setattr(ray, "shutdown", lambda: shut.append(True))
+    token = CancelToken()
+    with cancel_on_signals(token):
+        handler = signal.getsignal(signal.SIGINT)
+        timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))
+        timer.start()
+        started = time.monotonic()
+        try:
+            with pytest.raises(Cancelled, match=r"Ctrl-C while connecting to Ray \(a new local instance\)"):
+                connect(None)
+        finally:
+            timer.cancel()
+        assert time.monotonic() - started < 5.0 and shut == [True]
+        assert signal.getsignal(signal.SIGINT) is handler and not token.cancelled

@@ -714,6 +714,8 @@ def test_taus_may_start_below_zero_without_an_equals_sign(registered, capsys):
     assert "  -0.50 " in out and "   1.00 " in out
     assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--taus", "-0.5:x"]) == 2
     assert "--taus must be START:STOP:STEP, got '-0.5:x'" in capsys.readouterr().err
+    assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"]), "--taus", "0:1:0.0000009999999"]) == 2
+    assert "STEP 9.999999e-07 is below 1e-06" in capsys.readouterr().err  # round 92a F1: "STEP 1e-06 is below 1e-06"
 
 
 @pytest.mark.parametrize("flag", ["--save-labels", "--json"])

@@ -3503,3 +3503,15 @@ def test_a_registration_that_assigns_nothing_keeps_no_checkpoint_and_blames_the_
     assert leftovers == [], leftovers  # no checkpoint, no statistics snapshot
     if case == "every Gaussian transparent":
         assert "Gaussians have an opacity under 1/255, which draws nothing" in err and "nerfstudio" not in err, err
+
+
+SECOND_CTRL_C_AS_IT_SAYS = ('sys.stderr = type("SecondCtrlC", (), {"write": lambda s, t: (os.kill(os.getpid(), signal.SIGINT), '
+                            'sys.__stderr__.write(t))[1], "flush": lambda s: sys.__stderr__.flush()})(); raise KeyboardInterrupt')
+
+
+@pytest.mark.parametrize("where", ["drsplat.cli", "drsplat.commands.register", "viewer.launch"])
+def test_a_second_ctrl_c_as_the_start_up_interrupt_is_said_is_still_one_line(where):
+    """Round 92b F2: a second Ctrl-C while the first one's line was written (the user pressing twice) ended the process
+    by the signal (status 130: 7 of 12 tries) or in a traceback; signals are ignored before that line now. Here the
+    second Ctrl-C is a real SIGINT sent as the line is written."""
+    _assert_one_line_start_up_interrupt(_interrupted_at_import(where, SECOND_CTRL_C_AS_IT_SAYS))

@@ -826,7 +826,9 @@ def test_a_threshold_just_outside_the_range_is_shown_as_given(capsys):
     from drsplat.cli import build_parser
 
     for argv, said in ((["query", "x.ply", "--embedding", "e.npy", "--threshold", "1.0000001"], "1.0000001 is outside [-1, 1]"),
-                       (["segment", "x.ply", "--min-score", "1.0000001"], "1.0000001 is out of range")):
+                       (["segment", "x.ply", "--min-score", "1.0000001"], "1.0000001 is out of range"),
+                       (["register", "x.ply", "--resolution", "640.0000001"], "640.0000001: a width is a whole number"),  # round 92a F1
+                       (["register", "x.ply", "--resolution", "0.99999999"], "0.99999999: expected -1")):
         with pytest.raises(SystemExit):
             build_parser().parse_args(argv)
         err = capsys.readouterr().err

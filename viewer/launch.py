@@ -424,8 +424,14 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, flag) is not None and not getattr(args, flag).strip():
             parser.error(f"--{flag} is empty: give the {'phrase to search for' if flag == 'query' else 'label to query'}")
     setup_logging(args.verbose)
-    with sigterm_as_interrupt():  # SIGTERM closes the window as Ctrl-C does: one line, exit 1 (not a silent 143)
-        return _run(args)
+    code = None
+    try:
+        with sigterm_as_interrupt():  # SIGTERM closes the window as Ctrl-C does: one line, exit 1 (not a silent 143)
+            code = _run(args)
+    except KeyboardInterrupt:
+        if code is None:
+            raise
+    return code  # a signal as the block ended (round 92b F1: a traceback after "wrote out.png"): the work's own outcome
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -284,9 +284,9 @@ def resolution_value(text: str) -> float:
     if value == -1 or value in RESOLUTION_DIVISORS:
         return value
     if not 1 <= value <= MAX_IMAGE_WIDTH:  # a width: 0.5 or 1e-300 would make images of no pixels
-        raise argparse.ArgumentTypeError(f"{value:g}: expected -1 (full size, capped at 1600 px), 1, 2, 4, 8 or a width in 1..{MAX_IMAGE_WIDTH} pixels")
+        raise argparse.ArgumentTypeError(f"{shown_number(value)}: expected -1 (full size, capped at 1600 px), 1, 2, 4, 8 or a width in 1..{MAX_IMAGE_WIDTH} pixels")
     if value != int(value):  # 2.5 read as a 2.5-pixel width (round 61c): surely meant as a divisor
-        raise argparse.ArgumentTypeError(f"{value:g}: a width is a whole number of pixels, and the divisors are 1, 2, 4 and 8 "
+        raise argparse.ArgumentTypeError(f"{shown_number(value)}: a width is a whole number of pixels, and the divisors are 1, 2, 4 and 8 "
                                          "(3DGS's -r); give one of them or a width such as 640")
     return value
 

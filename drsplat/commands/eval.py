@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.commands.common import (add_near_plane_argument, add_principal_point_argument, check_npy_name, float_range, guard_args, guard_field_codebook, int_range, json_output_file,
-                                     output_file, refuse_repeats, table_stream, threshold_value)
+                                     output_file, refuse_repeats, shown_number, table_stream, threshold_value)
 from drsplat.defaults import (DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_LIMIT, LERF_ALPHA_THRESHOLD, NEAR, ORACLE_LABEL_NAMES,
                               ORACLE_TEXT_EMBEDDINGS)
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
@@ -262,7 +262,7 @@ def parse_taus(text: str) -> np.ndarray:
     if step <= 0 or stop < start:
         raise UsageError(f"--taus {text!r}: need STEP > 0 and STOP >= START")
     if step < MIN_TAU_STEP:
-        raise UsageError(f"--taus {text!r}: STEP {step:g} is below {MIN_TAU_STEP:g}; thresholds are compared to 6 decimals")
+        raise UsageError(f"--taus {text!r}: STEP {shown_number(step)} is below {MIN_TAU_STEP:g}; thresholds are compared to 6 decimals")
     with np.errstate(over="ignore", invalid="ignore"):
         count = np.floor((stop - start) / step + 0.5) + 1
     if not np.isfinite(count) or count > MAX_TAUS:
