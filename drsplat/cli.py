@@ -90,14 +90,19 @@ def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None)
     return note(args, exc) if callable(note) else note
 
 
-def main(argv: list[str] | None = None) -> int:
+NOT_RETURNED = object()  # a command's result before its function returned (a command may return None)
+
+
+def main(argv: list[str] | None = None, as_program: bool = False) -> int:
+    """Run the command line `argv` (default: sys.argv) and return its exit code. as_program: this is the process's
+    own entry (`entry`), whose interrupted start-up may ignore further signals; a program calling main keeps its own."""
     try:
         # imports every command's module: the slow part of start-up (seconds on a busy machine), where
         # SIGTERM killed the process by the signal with no message (probe round 26)
         with sigterm_as_interrupt():
             parser = build_parser()
     except KeyboardInterrupt:
-        if argv is None:  # run as the program (`entry`), not called with arguments: a second Ctrl-C must not cut the line (round 92b)
+        if as_program:  # a second Ctrl-C must not cut the line (round 92b); a caller of main keeps its handlers (round 93a F5)
             ignore_stop_signals()
         sys.stderr.write(STARTING_NOTE)
         return 1
@@ -107,14 +112,18 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.verbose, args.quiet)
     if args.quiet and hasattr(args, "no_progress"):  # a progress bar is info-level output (round 51: -q still drew bars)
         args.no_progress = True
+    result = NOT_RETURNED
     try:
         with sigterm_as_interrupt():
             result = args.func(args)
+    except KeyboardInterrupt as exc:
+        if result is NOT_RETURNED:
+            log.error("interrupted; %s", interrupted_note(args, exc))
+            return 1
+        # a signal as the command's handler block ended, its work done (round 93a F4: "interrupted ..." and exit 1 after
+        # the outputs were written): the command's own outcome stands
     except Cancelled as exc:
         log.error("%s; %s", exc, interrupted_note(args, exc))
-        return 1
-    except KeyboardInterrupt as exc:
-        log.error("interrupted; %s", interrupted_note(args, exc))
         return 1
     except UsageError as exc:
         getattr(args, "_usage_parser", parser).print_usage(sys.stderr)
@@ -147,12 +156,14 @@ def entry() -> None:
     Ctrl-C or SIGTERM while the interpreter then shuts down (0.1-0.8 s) is ignored: the command's
     work is done, and such a signal killed the process with status 130 / 143 and no message, after
     a successful run too (probe round 14)."""
+    code = None
     try:
-        code = main()
-    except KeyboardInterrupt:  # a second signal while main said it was stopped, or one as it returned (round 92b)
+        code = main(as_program=True)
+    except KeyboardInterrupt:  # a second signal while main said it was stopped (round 92b), or one as it returned
         ignore_stop_signals()
-        sys.stderr.write("drsplat: interrupted\n")
-        code = 1
+        if code is None:
+            sys.stderr.write("drsplat: interrupted\n")
+            code = 1
     ignore_stop_signals()
     sys.exit(code)
 

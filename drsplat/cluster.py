@@ -329,8 +329,10 @@ def check_reachable(address: str, timeout: float = 3.0) -> None:
         return
     start_hint = "pass the address `ray start --head` prints, or use --ray with no address for a local cluster"
     if answer == "grpc":
-        raise DrsplatError(f"{address} answers gRPC but is not a Ray cluster's GCS (it does not give its cluster id: a "
-                           f"raylet's or another service's port?); {start_hint}")
+        # the call's refusal is not decoded (HPACK): "unimplemented" (a raylet's port) and "unauthenticated" (a cluster
+        # that asks for a token this process does not send) look alike here (round 93a F1)
+        raise DrsplatError(f"{address} answers gRPC but refused the cluster-id call every Ray GCS answers: a raylet's or another "
+                           f"service's port, or a cluster that asks for a token{auth_hint()}; otherwise {start_hint}")
     if answer == "grpc_silent":
         raise DrsplatError(f"{address} answers HTTP/2 but not the cluster-id call every Ray GCS answers within "
                            f"{timeout:g} s (another service on that port?); {start_hint}")

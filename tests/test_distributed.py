@@ -378,7 +378,9 @@ def test_an_address_that_is_not_a_ray_cluster_is_one_clear_error_at_once(kind, m
     try:
         started = time.monotonic()
         with pytest.raises(DrsplatError, match=rf"^{address} (accepts a connection but does not answer as a Ray cluster does|"
-                                               rf"answers HTTP/2 but not the cluster-id call|answers gRPC but is not a Ray cluster's GCS)"):
+                                               rf"answers HTTP/2 but not the cluster-id call|answers gRPC but refused the cluster-id call every Ray GCS answers: a "
+                                               rf"raylet's or another service's port, or a cluster that asks for a token; if the cluster "
+                                               rf"uses Ray's token authentication)"):
             check_reachable(address, timeout=1.0)
         assert time.monotonic() - started < 5.0  # the timeout bounds the whole probe, not each read
     finally:

@@ -3515,3 +3515,42 @@ def test_a_second_ctrl_c_as_the_start_up_interrupt_is_said_is_still_one_line(whe
     by the signal (status 130: 7 of 12 tries) or in a traceback; signals are ignored before that line now. Here the
     second Ctrl-C is a real SIGINT sent as the line is written."""
     _assert_one_line_start_up_interrupt(_interrupted_at_import(where, SECOND_CTRL_C_AS_IT_SAYS))
+
+
+def test_a_signal_as_a_command_ends_keeps_its_outcome(world, monkeypatch, capsys):
+    """Round 93a F4: a Ctrl-C or SIGTERM landing as a command's handler block ended, its work done, said "interrupted;
+    no partial output file was left" and exited 1 after the outputs were written; the command's own outcome stands."""
+    import contextlib
+
+    import drsplat.cli
+
+    blocks = []
+
+    @contextlib.contextmanager
+    def interrupted_as_it_ends():
+        blocks.append(True)
+        yield
+        if len(blocks) == 2:  # the command's block, not the parser's
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(drsplat.cli, "sigterm_as_interrupt", interrupted_as_it_ends)
+    assert main(["info", str(world["reg"])]) == 0 and len(blocks) == 2
+    assert "interrupted" not in capsys.readouterr().err
+
+
+def test_an_interrupted_start_leaves_a_callers_signal_handlers(monkeypatch, capsys):
+    """Round 93a F5: `drsplat.cli.main()` called by a program (no argv) whose start-up a Ctrl-C interrupted left Ctrl-C
+    and SIGTERM ignored for the rest of that program's life; only the `drsplat` process's own entry ignores them."""
+    import signal
+
+    import drsplat.cli
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    before = (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM))
+    monkeypatch.setattr(drsplat.cli, "build_parser", interrupted)
+    monkeypatch.setattr(sys, "argv", ["drsplat", "info", "--help"])
+    assert drsplat.cli.main() == 1
+    assert "interrupted while starting; nothing was done" in capsys.readouterr().err
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before

@@ -731,5 +731,12 @@ def test_missing_gl_libraries_are_one_error_line(monkeypatch):
     def no_display():
         raise RuntimeError("no display")
 
-    with pytest.raises(RuntimeError, match="^no display$"):  # moderngl's own RuntimeError passes as it was
+    with pytest.raises(RuntimeError, match="^no display$"):  # a RuntimeError passes as it was
         gl_context(no_display, "a context")
+
+    def too_old():  # moderngl's version check (round 93a F3: said to be missing libraries)
+        raise moderngl.Error("requested OpenGL version 430, got version 410")
+
+    with pytest.raises(RuntimeError, match=r"^cannot create a context: requested OpenGL version 430, got version 410 \(the viewer "
+                                           r"needs OpenGL 4\.3\)$"):
+        gl_context(too_old, "a context")

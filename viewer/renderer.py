@@ -122,14 +122,18 @@ GL_LIBRARIES_HINT = "on Debian/Ubuntu: apt install libegl1 libgl1 libgl1-mesa-dr
 
 def gl_context(create, what: str) -> moderngl.Context:
     """`create()`'s OpenGL context, or a RuntimeError of one line: glcontext raises a bare Exception when it cannot load
-    libEGL or libGL (round 91b F1: a 20-line traceback where `--screenshot` promises one error line)."""
+    libEGL or libGL (round 91b F1: a 20-line traceback where `--screenshot` promises one error line), moderngl its own
+    Error or a ValueError when the context is older than GL_REQUIRE, glcontext a bare Exception when EGL makes none
+    (round 93a F3: both were said to be a missing library too)."""
     try:
         return create()
     except RuntimeError:
         raise
-    except Exception as exc:  # noqa: BLE001 - glcontext's own class for a library it could not load
-        raise RuntimeError(f"cannot create {what} ({exc}): the system's OpenGL libraries are missing or unusable; "
-                           f"{GL_LIBRARIES_HINT}") from None
+    except Exception as exc:  # noqa: BLE001 - glcontext's and moderngl's classes
+        if type(exc) is Exception and "not loaded" in str(exc):  # glcontext's words for a library it could not load
+            raise RuntimeError(f"cannot create {what} ({exc}): the system's OpenGL libraries are missing or unusable; "
+                               f"{GL_LIBRARIES_HINT}") from None
+        raise RuntimeError(f"cannot create {what}: {exc} (the viewer needs OpenGL {GL_REQUIRE // 100}.{GL_REQUIRE % 100 // 10})") from None
 
 
 def create_offscreen_context() -> moderngl.Context:

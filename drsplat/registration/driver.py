@@ -912,8 +912,7 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera], near_plane:
     why = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if small else ""
     faint = float(np.mean(scene.opacities() < ALPHA_MIN)) if scene.num_gaussians else 0.0
     if faint >= 0.1:  # every pixel skips them (α < 1/255, as 3DGS's rasterizer does): seen or not, they get no weight
-        why += (f"; {int(100 * faint)}% of the Gaussians have an opacity under 1/255, which the rasterizer skips at every pixel "
-                "(is the file's opacity a logit, as the INRIA layout stores it?)")
+        why += f"; {int(100 * faint)}% of the Gaussians have an opacity under 1/255, which the rasterizer skips at every pixel"
     near = share_within_near_plane(scene.means, cameras, near=near_plane)
     if near >= 0.1:
         return why + (f"; {int(100 * near)}% of the Gaussians are nearer to every camera than the near plane ({near_plane:g} scene units), "
