@@ -2,7 +2,8 @@
 
 import sys
 
-from drsplat.console import ignore_stop_signals, interrupted_start, prefer_passive_openmp_waits
+from drsplat.console import prefer_passive_openmp_waits
+from drsplat.stop_signals import ignore_stop_signals, interrupted_start
 
 prefer_passive_openmp_waits()  # before the viewer's imports load numba's and torch's OpenMP runtimes
 try:

@@ -19,7 +19,7 @@ import threading
 
 from drsplat import __version__
 from drsplat.commands.common import ArgumentParser
-from drsplat.console import ignore_stop_signals
+from drsplat.stop_signals import ignore_stop_signals
 from drsplat.errors import INTERRUPTED_NOTE, STARTING_NOTE, Cancelled, DrsplatError, UsageError, escape_hidden
 from drsplat.utils import describe_os_error
 

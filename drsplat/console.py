@@ -9,12 +9,10 @@ console script imported `drsplat.cli` itself (round 54).
 import os
 import signal
 import sys
-import threading
 from collections.abc import MutableMapping
-from typing import NoReturn
 
 from drsplat.defaults import C_BLANKS, OPENMP_WAIT_POLICY, openmp_wait_policy
-from drsplat.errors import STARTING_NOTE
+from drsplat.stop_signals import interrupted_start
 
 
 def prefer_passive_openmp_waits(environ: MutableMapping[str, str] = os.environ) -> None:
@@ -28,25 +26,6 @@ def prefer_passive_openmp_waits(environ: MutableMapping[str, str] = os.environ) 
             sys.stderr.write(f"drsplat: OMP_WAIT_POLICY={given!r} is neither 'active' nor 'passive'; "
                              f"using {OPENMP_WAIT_POLICY!r}\n")
         environ["OMP_WAIT_POLICY"] = OPENMP_WAIT_POLICY
-
-
-def ignore_stop_signals() -> None:
-    """Ctrl-C and SIGTERM ignored from here on, in a process's entry point once its outcome is settled (the work done,
-    or the interrupted start said): such a signal while the interpreter shuts down (0.1-0.8 s) killed the process with
-    status 130 / 143, or a KeyboardInterrupt traceback from a library's exit hook, after its last line (probe round 14;
-    round 92b: the viewer's `--screenshot`, and a second Ctrl-C at start-up). Never from library code: a test or a
-    program calling drsplat keeps its handlers."""
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-
-
-def interrupted_start(program: str = "drsplat") -> NoReturn:
-    """The one line of a Ctrl-C (or SIGTERM) while Python imports `program`, then exit 1; signals ignored first, so a
-    second one cannot turn it into a traceback or a death by the signal (round 92b: 7 of 12 double Ctrl-Cs)."""
-    ignore_stop_signals()
-    sys.stderr.write(STARTING_NOTE if program == "drsplat" else f"{program}: interrupted while starting; nothing was done\n")
-    raise SystemExit(1)
 
 
 def entry() -> None:
