@@ -1108,8 +1108,8 @@ def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera], near: floa
         faint = float(np.mean(scene.opacities() < ALPHA_MIN)) if scene.num_gaussians else 0.0
         if faint >= FAINT_SCENE_SHARE:  # next to nothing draws in any frame: the frame is not what to look at (round 91c F2)
             log.warning("none of the %d training views checked shows the scene (each render covers under %d pixels): %d%% of its "
-                        "Gaussians have an opacity under 1/255, which draws nothing", skipped[LITTLE_COVERED], PHOTO_MIN_PIXELS,
-                        int(100 * faint))
+                        "Gaussians have an opacity under 1/255, which draws nothing (and the others may be in another frame "
+                        "than the cameras)", skipped[LITTLE_COVERED], PHOTO_MIN_PIXELS, int(100 * faint))  # round 94a F4: both
             return
         log.warning("none of the %d training views checked shows the scene (each render covers under %d pixels): the scene may be "
                     "in another frame than its cameras (%s), or the dataset is not this scene's", skipped[LITTLE_COVERED],
