@@ -72,6 +72,8 @@ class _StderrHandler(logging.StreamHandler):
         return escape_hidden(super().format(record))  # names from files (image stems, paths) reach many messages
 
 
+# PIL says two DEBUG lines for every PNG chunk it reads: noise among drsplat's own lines even with -v (round 94b F3)
+CHATTY_LOGGERS = ("PIL",)
 LIBRARY_LOGGERS = ("torch",)  # others' INFO lines (torch's "FakeTensor cache stats" at exit) are not this program's: -v shows them
 
 
@@ -80,6 +82,8 @@ def setup_logging(verbose: bool = False, quiet: bool = False) -> None:
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s", handlers=[_StderrHandler()], force=True)
     for name in LIBRARY_LOGGERS:
         logging.getLogger(name).setLevel(logging.NOTSET if verbose else max(level, logging.WARNING))
+    for name in CHATTY_LOGGERS:
+        logging.getLogger(name).setLevel(max(level, logging.WARNING))
 
 
 def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None) -> str:

@@ -466,7 +466,7 @@ def frame_hint(means: np.ndarray, cameras: Sequence[Camera], near: float = NEAR)
     if seen >= LOW_SEEN_FRACTION:
         return ""
     return (f"; only {100 * seen:.0f}% of the Gaussians' centres lie inside any view: the scene may be in another frame than its "
-            f"cameras ({SPLATFACTO_FRAME} and they are moved there; gsplat's simple_trainer normalises the world unless normalize_world_space "
+            f"cameras ({SPLATFACTO_FRAME}, and drsplat moves the cameras there; gsplat's simple_trainer normalises the world unless normalize_world_space "
             "is off: `drsplat register` moves a COLMAP dataset's cameras there itself, from the model's images and sparse points, "
             "which must be those gsplat was trained on): give the cameras of the scene's frame")
 
@@ -903,8 +903,11 @@ def cameras_with_principal_point(scene, cameras: Sequence[Camera], choice: str =
                     "the principal points of %s are moved to their image centres (up to %s of the side); "
                     "--principal-point file keeps them", what, centre_rho, given_rho, compared.of_views(), of, worst)
         return centred
+    # the centres' better score under the floor decides nothing, and is said so (round 94b F1: the numbers favoured them)
+    weak = (f"; the centres' is higher but under {PHOTO_MATCH_MIN:g}, too low to tell how the scene was trained: "
+            "--principal-point centre takes them") if centre_rho > given_rho and centre_rho < PHOTO_MATCH_MIN else ""
     log.info("the principal points of %s are used as the camera file gives them (median grey correlation %.3f against %.3f at the "
-             "image centres, %s)", of, given_rho, centre_rho, compared.of_views())
+             "image centres, %s%s)", of, given_rho, centre_rho, compared.of_views(), weak)
     return cameras
 
 

@@ -1600,3 +1600,27 @@ def test_floaters_over_what_no_gaussian_covers_are_evidence_too(tmp_path):
         folder.mkdir()
         images = cameras_with_own_images(prepare_scene(floaty), cams, folder, plane)
         assert near_plane_as_trained(floaty, images) == plane, plane
+
+
+def test_a_centred_reading_too_weak_to_decide_is_said_so(tiny_seed0, monkeypatch, caplog):
+    """Round 94b F1: `--principal-point auto` kept the file's principal points saying "median grey correlation 0.313
+    against 0.573 at the image centres", numbers that favour the centres, without a word of why: the centres' 0.573 is
+    under PHOTO_MATCH_MIN, too low to tell how the scene was trained. The line says so now."""
+    from drsplat import frames
+
+    scene, _, cams, _ = tiny_seed0
+    monkeypatch.setattr(frames, "best_reading", lambda *a, **k: (0, frames.ReadingScores([0.313, 0.573], 5, "")))
+    with caplog.at_level(logging.INFO, logger="drsplat.frames"):
+        kept = frames.cameras_with_principal_point(scene, _shifted(cams, 4.0, 2.0))
+    assert all(c.cx != c.width / 2 for c in kept)
+    line = next(r.getMessage() for r in caplog.records if "used as the camera file gives them" in r.getMessage())
+    assert f"the centres' is higher but under {frames.PHOTO_MATCH_MIN:g}, too low to tell how the scene was trained" in line, line
+
+
+def test_the_other_frame_hint_reads_as_one_sentence(tiny_seed0):
+    """Round 94b F2: the hint said "... in place of any other run's and they are moved there": two sentences spliced."""
+    from drsplat.frames import frame_hint
+
+    scene, _, cams, _ = tiny_seed0
+    hint = frame_hint(np.asarray(scene.means, np.float64) + 1000.0, cams)
+    assert "in place of any other run's, and drsplat moves the cameras there; gsplat's" in hint and "and they are moved" not in hint, hint

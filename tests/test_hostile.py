@@ -3554,3 +3554,21 @@ def test_an_interrupted_start_leaves_a_callers_signal_handlers(monkeypatch, caps
     assert drsplat.cli.main() == 1
     assert "interrupted while starting; nothing was done" in capsys.readouterr().err
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
+def test_verbose_logging_leaves_out_pils_chunk_lines():
+    """Round 94b F3: with -v, PIL said two DEBUG lines for every PNG it read ("STREAM b'IHDR' ..."), among drsplat's own."""
+    import logging
+
+    from drsplat.cli import setup_logging
+
+    root, pil = logging.getLogger(), logging.getLogger("PIL")
+    saved = (list(root.handlers), root.level, pil.level)
+    try:
+        setup_logging(verbose=True)
+        assert logging.getLogger("drsplat").isEnabledFor(logging.DEBUG)
+        assert not logging.getLogger("PIL.PngImagePlugin").isEnabledFor(logging.DEBUG)
+    finally:
+        root.handlers[:] = saved[0]
+        root.setLevel(saved[1])
+        pil.setLevel(saved[2])
