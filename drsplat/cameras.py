@@ -796,7 +796,7 @@ class DatasetPaths:
         folder = target.parent
         if folder not in self.listings:
             try:
-                self.listings[folder] = frozenset(_folded(entry) for entry in os.listdir(folder))
+                self.listings[folder] = frozenset(folded_name(entry) for entry in os.listdir(folder))
             except (FileNotFoundError, NotADirectoryError):  # no such folder: it holds nothing
                 self.listings[folder] = frozenset()
             except (OSError, ValueError):  # unreadable, or a name no file system holds: the calls decide
@@ -804,17 +804,17 @@ class DatasetPaths:
         listing = self.listings[folder]
         if listing is None:
             return True
-        base = _folded(target.name)
+        base = folded_name(target.name)
         return base in listing or any(base + suffix in listing for suffix in IMAGE_SUFFIXES_LOWER)
 
 
 def _same_spelling(entry: str, wanted: str) -> bool:
     """Whether a folder's entry is the image `wanted` names, read case- and normalisation-blind, with an image suffix
     of its own where `wanted` has none (round 86c F2: the camera name 'img' beside IMG.png was not said)."""
-    if _folded(entry) == _folded(wanted):
+    if folded_name(entry) == folded_name(wanted):
         return True
     base = _image_base(entry)
-    return base is not None and _image_base(wanted) is None and _folded(base) == _folded(wanted)
+    return base is not None and _image_base(wanted) is None and folded_name(base) == folded_name(wanted)
 
 
 def _image_base(name: str) -> str | None:
@@ -823,12 +823,12 @@ def _image_base(name: str) -> str | None:
     return base if dot and f".{suffix}".lower() in IMAGE_SUFFIXES_LOWER else None
 
 
-def _spelling_difference(entry: str, wanted: str) -> str:
-    """How two names `_same_spelling` finds alike differ: in Unicode's composed and decomposed accents, in letter case,
+def spelling_difference(entry: str, wanted: str) -> str:
+    """How two names `_same_spelling` (or `folded_name`) finds alike differ: in Unicode's composed and decomposed accents, in letter case,
     or in what Unicode's case folding takes as one (ß and ss, a ligature: round 86c F6 called that "letter case"); an
     image suffix of the entry's own, where `wanted` has none, is named too."""
     extra = ""
-    if _folded(entry) != _folded(wanted):  # alike only without the entry's image suffix
+    if folded_name(entry) != folded_name(wanted):  # alike only without the entry's image suffix
         entry, extra = _image_base(entry), " (and it has an image suffix the cameras leave out)"
     a, b = unicodedata.normalize("NFC", entry), unicodedata.normalize("NFC", wanted)
     if a == b:
@@ -838,7 +838,7 @@ def _spelling_difference(entry: str, wanted: str) -> str:
     return "in letter case as Unicode compares it (ß and ss, a ligature and its letters)" + extra
 
 
-def _folded(name: str) -> str:
+def folded_name(name: str) -> str:
     """A file name as case- and normalisation-blind file systems compare it (macOS: "é" composed or not is one name)."""
     return unicodedata.normalize("NFC", name).casefold()
 
@@ -1601,7 +1601,7 @@ def _missing_hint(kind: str, found: Path, missing: str) -> str:
     # files only: a folder or a dangling link of an alike name was called an accent's encoding (round 87a F3)
     spelled = [entry for entry in listed if entry != wanted.name and _same_spelling(entry, wanted.name) and (wanted.parent / entry).is_file()]
     if spelled:  # round 85d F3: a name differing in case, or in Unicode's composed and decomposed accents (a zip made on macOS)
-        return hint + f"; {spelled[0]!r} in that folder differs from the name the cameras give only {_spelling_difference(spelled[0], wanted.name)}: " \
+        return hint + f"; {spelled[0]!r} in that folder differs from the name the cameras give only {spelling_difference(spelled[0], wanted.name)}: " \
             "rename one to match the other"
     # a name with an image suffix is opened as it is; one without (cameras.json, NeRF names) gets each suffix tried
     named = wanted.suffix.lower() in IMAGE_SUFFIXES_LOWER

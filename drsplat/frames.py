@@ -79,7 +79,7 @@ from drsplat.cameras import (DATAPARSER_TRANSFORMS, AppliedMove, Camera, applied
                              read_colmap_model, read_dataparser_transform)
 from drsplat.defaults import DEFAULT_NEAR_PLANE, DEFAULT_PRINCIPAL_POINT, INRIA_NEAR, NEAR, PRINCIPAL_POINTS
 from drsplat.errors import InputError
-from drsplat.raster import ALPHA_MIN, median_seen_depth, near_band, prepare_scene, rasterize, share_in_some_view
+from drsplat.raster import faint_share, median_seen_depth, near_band, prepare_scene, rasterize, share_in_some_view
 from drsplat.scene import counted
 from drsplat.utils import CancelToken, spread_rows
 
@@ -1108,7 +1108,7 @@ def warn_if_scene_misses_its_images(scene, cameras: Sequence[Camera], near: floa
     agreement = photo_agreement(scene, cameras, skipped=skipped, near=near)
     if not agreement and skipped[LITTLE_COVERED] and skipped[LITTLE_COVERED] == sum(skipped.values()):
         # every view with an image shows (next to) nothing of the scene: the plainest wrong dataset (round 57c: said at DEBUG)
-        faint = float(np.mean(scene.opacities() < ALPHA_MIN)) if scene.num_gaussians else 0.0
+        faint = faint_share(scene)
         if faint >= FAINT_SCENE_SHARE:  # next to nothing draws in any frame: the frame is not what to look at (round 91c F2)
             log.warning("none of the %d training views checked shows the scene (each render covers under %d pixels): %d%% of its "
                         "Gaussians have an opacity under 1/255, which draws nothing (and the others may be in another frame "

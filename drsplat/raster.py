@@ -381,6 +381,12 @@ def widened_scene(scene: GaussianScene) -> GaussianScene:
     return dataclasses.replace(scene, **{name: np.asarray(getattr(scene, name), np.float32) for name in narrow})
 
 
+def faint_share(scene: GaussianScene) -> float:
+    """The share of `scene`'s Gaussians with an opacity under ALPHA_MIN (1/255), which the rasterizer skips at every
+    pixel as 3DGS's does: seen or not, they draw nothing and get no weight. 0 for a scene without Gaussians."""
+    return float(np.mean(scene.opacities() < ALPHA_MIN)) if scene.num_gaussians else 0.0
+
+
 def warn_unrendered(prepared: PreparedScene) -> None:
     """The one warning that `prepared` flags Gaussians it does not render, with what makes a Gaussian unusable."""
     if prepared.num_nonfinite:

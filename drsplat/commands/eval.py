@@ -14,11 +14,11 @@ import argparse
 import json
 import logging
 import math
-import unicodedata
 from pathlib import Path
 
 import numpy as np
 
+from drsplat.cameras import folded_name, spelling_difference
 from drsplat.commands.common import (add_near_plane_argument, add_principal_point_argument, check_npy_name, float_range, guard_args, guard_field_codebook, int_range, json_output_file,
                                      output_file, refuse_repeats, shown_number, table_stream, threshold_value)
 from drsplat.defaults import (DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_LIMIT, LERF_ALPHA_THRESHOLD, NEAR, ORACLE_LABEL_NAMES,
@@ -706,11 +706,6 @@ def trained_cameras(scene, registered: Path) -> dict:
     return {"scene_path": checkpoint, "refinements": refinements}
 
 
-def loose_spelling(name: str) -> str:
-    """`name` up to blanks around it, case and Unicode form (NFKC): how a hint finds the name a user meant."""
-    return unicodedata.normalize("NFKC", name).strip().casefold()
-
-
 def check_categories_named(views, categories: list[str], names: list[str], names_path: Path) -> None:
     """Every annotated category must have a label name (and so a query embedding). The error names
     the first annotation file and object holding a missing category, the names file, and a spelling
@@ -721,12 +716,14 @@ def check_categories_named(views, categories: list[str], names: list[str], names
     first = missing[0]
     view = next(v for v in views if first in v.masks or first in v.skipped)
     k = view.first_object.get(first)
-    near = [n for n in names if loose_spelling(n) == loose_spelling(first)]
+    # up to blanks around it and what `cameras.folded_name` folds (case, composed accents): said as the cameras' names are
+    near = [n for n in names if folded_name(n.strip()) == folded_name(first.strip())]
     hint = ""
-    if near and unicodedata.normalize("NFC", near[0]) == unicodedata.normalize("NFC", first):  # they print alike (round 91a F6)
-        hint = f" (the names hold {ascii(near[0])}, this is {ascii(first)}: the same letters in another Unicode form)"
-    elif near:
-        hint = f" (the names hold {near[0]!r}: the spellings differ in blanks, case or Unicode form)"
+    if near:
+        ways = (["in blanks around it"] if near[0].strip() != near[0] or first.strip() != first else []) + \
+               ([spelling_difference(near[0].strip(), first.strip())] if near[0].strip() != first.strip() else [])
+        # escaped: spellings that differ in composed accents print alike (round 91a F6)
+        hint = f" (the names hold {ascii(near[0])}, this is {ascii(first)}: the spellings differ {' and '.join(ways)})"
     more = f"; {len(missing) - 1} more annotated categor{'y' if len(missing) == 2 else 'ies'} lack one too: {missing[1:6]}" if len(missing) > 1 else ""
     raise InputError(view.path, f"category {first!r} is not among the {len(names)} names of {shown_path(names_path)}, so it has no "
                                 f"query embedding{hint}{more}",

@@ -42,7 +42,7 @@ from drsplat.lang import Codebook, load_codebook, train_codebook
 from drsplat.lang.codebook import PQ_TRAIN_MAX, SCENE_PQ_M
 from drsplat.lang.field import scene_sample_ids, scene_training_set
 from drsplat.memory import current_rss, format_size, trim_heap
-from drsplat.raster import ALPHA_MIN, NEAR, get_engine, kernels_cached, median_nearest_depth, plane_below, share_within_near_plane, some_view_draws, widened_scene
+from drsplat.raster import NEAR, faint_share, get_engine, kernels_cached, median_nearest_depth, plane_below, share_within_near_plane, some_view_draws, widened_scene
 from drsplat.registration.aggregate import PEAK_MIN, REJECT_FIRST_RUN_PROBE, SHARP_FIRST_RUN_PROBE, Aggregator, mode_stages, without_check, without_rejection
 from drsplat.registration.fit import (FIRST_RUN_PROBE as FIT_PROBE, FOOTPRINTS, FitChoice, FitStage, fit_stage, is_fit_mode, probe_engine,
                                       probe_folds_floaters, probe_memory, probe_memory_bound, resolve_mode)
@@ -910,7 +910,7 @@ def unassigned_hint(scene: GaussianScene, cameras: Sequence[Camera], near_plane:
     sizes = sorted({(c.width, c.height) for c in cameras})
     small = bool(sizes) and sizes[0][0] < 64
     why = f"; the views are only {sizes[0][0]}x{sizes[0][1]} px (check --resolution)" if small else ""
-    faint = float(np.mean(scene.opacities() < ALPHA_MIN)) if scene.num_gaussians else 0.0
+    faint = faint_share(scene)
     if faint >= 0.1:  # every pixel skips them (α < 1/255, as 3DGS's rasterizer does): seen or not, they get no weight
         why += f"; {int(100 * faint)}% of the Gaussians have an opacity under 1/255, which the rasterizer skips at every pixel"
     near = share_within_near_plane(scene.means, cameras, near=near_plane)
