@@ -3,9 +3,11 @@ do once the outcome is settled. Imports nothing heavy: the console script calls 
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from typing import NoReturn
 
 from drsplat.errors import STARTING_NOTE
@@ -28,3 +30,28 @@ def interrupted_start(program: str = "drsplat") -> NoReturn:
     ignore_stop_signals()
     sys.stderr.write(STARTING_NOTE if program == "drsplat" else f"{program}: interrupted while starting; nothing was done\n")
     raise SystemExit(1)
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+@contextlib.contextmanager
+def stop_signals_held() -> Iterator[None]:
+    """Ctrl-C and SIGTERM that arrive in the block are held until it ends, then delivered again to the handlers that were
+    there (a KeyboardInterrupt, the default death, a cancel token's handler): for a short clean-up that must not stop
+    half-way (round 94a F2: a signal in `outputs_together`'s clean-up left the earlier output's hidden copy behind, while
+    the command said it left nothing). Blocking the signal in the main thread would not do: the kernel hands it to any
+    thread that has it unblocked (numba's, Ray's), and Python then runs the handler in the main thread all the same. Off
+    the main thread, where no handler can be set, the block runs as it is."""
+    if threading.current_thread() is not threading.main_thread() or None in map(signal.getsignal, STOP_SIGNALS):
+        yield  # None: a handler set outside Python, which could not be put back
+        return
+    held: list[int] = []
+    previous = {signum: signal.signal(signum, lambda signum, _frame: held.append(signum)) for signum in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        for signum in dict.fromkeys(held):
+            signal.raise_signal(signum)

@@ -25,6 +25,7 @@ from typing import TypeVar
 import numpy as np
 
 from drsplat.errors import Cancelled, InputError, OutputError, hidden_character, shown_path
+from drsplat.stop_signals import stop_signals_held
 
 log = logging.getLogger("drsplat")
 
@@ -427,14 +428,15 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
             settled[i] = True
         raise
     finally:
-        _WRITTEN.reset(token)
-        outer = _WRITTEN.get()
-        if outer is not None:
-            outer.update(written)
-        for copy, done in zip(kept, settled):
-            if copy is not None and done:  # one not put back yet (a second Ctrl-C in the loop) stays for the user (round 62a)
-                with contextlib.suppress(OSError):
-                    copy.unlink()
+        with stop_signals_held():
+            _WRITTEN.reset(token)
+            outer = _WRITTEN.get()
+            if outer is not None:
+                outer.update(written)
+            for copy, done in zip(kept, settled):
+                if copy is not None and done:  # one not put back yet (a second Ctrl-C in the loop) stays for the user (round 62a)
+                    with contextlib.suppress(OSError):
+                        copy.unlink()
 
 
 _WRITTEN: contextvars.ContextVar[dict | None] = contextvars.ContextVar("drsplat_written_outputs", default=None)

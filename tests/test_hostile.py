@@ -1255,6 +1255,50 @@ def test_outputs_together_leaves_another_writers_file_and_keeps_what_a_second_st
     assert kept, "the earlier files not put back are kept, not deleted"
 
 
+def test_a_signal_in_the_outputs_clean_up_leaves_no_hidden_copy(tmp_path, monkeypatch):
+    """Round 94a F2: Ctrl-C as `outputs_together` let go of the earlier output's hidden copy left
+    `.OUT.<pid>@<host>.kept.tmp` beside it, while the command said it left nothing."""
+    import drsplat.utils as ut
+    from drsplat.utils import outputs_together, save_npy_atomic
+
+    out = tmp_path / "labels.npy"
+    np.save(out, np.zeros(3))
+    real = ut._WRITTEN
+
+    class SignalOnReset:  # the signal lands in the clean-up's first step
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+        def reset(self, token):
+            signal.raise_signal(signal.SIGINT)
+            real.reset(token)
+
+    with pytest.raises(KeyboardInterrupt), outputs_together([out]):
+        save_npy_atomic(out, np.ones(3))
+        monkeypatch.setattr(ut, "_WRITTEN", SignalOnReset())
+    monkeypatch.undo()
+    np.testing.assert_array_equal(np.load(out), np.ones(3))  # the block had ended: the new output stands
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_held_stop_signals_reach_the_handlers_that_were_there():
+    from drsplat.stop_signals import stop_signals_held
+
+    heard = []
+    before = signal.signal(signal.SIGTERM, lambda signum, _frame: heard.append(signum))
+    try:
+        with stop_signals_held():
+            signal.raise_signal(signal.SIGTERM)
+            signal.raise_signal(signal.SIGTERM)
+            assert heard == []  # held while the block runs
+        assert heard == [signal.SIGTERM]
+        with pytest.raises(KeyboardInterrupt), stop_signals_held():
+            signal.raise_signal(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
 def test_viewer_size_flags_are_usage_errors(capsys):
     from viewer.launch import build_parser
 
