@@ -20,8 +20,8 @@ import threading
 from drsplat import __version__
 from drsplat.commands.common import ArgumentParser
 from drsplat.stop_signals import ignore_stop_signals
-from drsplat.errors import INTERRUPTED_NOTE, STARTING_NOTE, Cancelled, DrsplatError, UsageError, escape_hidden
-from drsplat.utils import describe_os_error
+from drsplat.errors import INTERRUPTED_NOTE, STARTING_NOTE, Cancelled, DrsplatError, UsageError, and_list, escape_hidden, shown_path
+from drsplat.utils import describe_os_error, settled_outputs
 
 COMMANDS = ("info", "synth", "features", "register", "pq", "query", "segment", "eval", "bench")
 
@@ -94,6 +94,11 @@ def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None)
     return note(args, exc) if callable(note) else note
 
 
+def after_writing(paths: list[str]) -> str:
+    """' after writing a.npy and b.ply (complete)' for an interrupted command's line, '' when it wrote none."""
+    return f" after writing {and_list([shown_path(p) for p in paths])} (complete)" if paths else ""
+
+
 NOT_RETURNED = object()  # a command's result before its function returned (a command may return None)
 
 
@@ -117,12 +122,13 @@ def main(argv: list[str] | None = None, as_program: bool = False) -> int:
     if args.quiet and hasattr(args, "no_progress"):  # a progress bar is info-level output (round 51: -q still drew bars)
         args.no_progress = True
     result = NOT_RETURNED
+    written_so_far = list  # what settled_outputs yields, for a signal before it began
     try:
-        with sigterm_as_interrupt():
+        with settled_outputs() as written_so_far, sigterm_as_interrupt():
             result = args.func(args)
     except KeyboardInterrupt as exc:
         if result is NOT_RETURNED:
-            log.error("interrupted; %s", interrupted_note(args, exc))
+            log.error("interrupted%s; %s", after_writing(written_so_far()), interrupted_note(args, exc))
             return 1
         # a signal as the command's handler block ended, its work done (round 93a F4: "interrupted ..." and exit 1 after
         # the outputs were written): the command's own outcome stands

@@ -47,6 +47,11 @@ def shown_path(path: str | Path) -> str:
     return json.dumps(text) if hidden_character(text) is not None else text
 
 
+def and_list(items: list[str]) -> str:
+    """'a', 'a and b', 'a, b and c'."""
+    return items[0] if len(items) == 1 else f"{', '.join(items[:-1])} and {items[-1]}"
+
+
 class DrsplatError(Exception):
     """An error caused by the user's input or environment; the CLI prints it and exits 1."""
 

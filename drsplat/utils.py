@@ -410,6 +410,7 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     try:
         yield
         settled = [True] * len(kept)
+        _note_settled(given, targets, written)
     except BaseException:
         for i, (target, then, copy) in enumerate(zip(targets, before, kept)):
             now = _file_identity(target)
@@ -440,6 +441,31 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
 
 
 _WRITTEN: contextvars.ContextVar[dict | None] = contextvars.ContextVar("drsplat_written_outputs", default=None)
+_SETTLED: contextvars.ContextVar[dict | None] = contextvars.ContextVar("drsplat_settled_outputs", default=None)
+
+
+def _note_settled(given: list[Path], targets: list[Path], written: dict[str, tuple[int, int] | None]) -> None:
+    """Record, for an enclosing `settled_outputs`, the outputs of an `outputs_together` block that ended well: each
+    given path with the file its block wrote at its target."""
+    record = _SETTLED.get()
+    if record is not None:
+        for path, target in zip(given, targets):
+            if _written_key(target) in written:
+                record[str(path)] = (target, written[_written_key(target)])
+
+
+@contextlib.contextmanager
+def settled_outputs() -> Iterator[Callable[[], list[str]]]:
+    """Yields a function that lists the outputs `outputs_together` blocks wrote and settled since the block began and
+    that still hold what they wrote (a later failed block may have put one back): what an interrupted command can say
+    it wrote (round 94a F1: a signal after the outputs were in place said only "interrupted; no partial output file
+    was left", as if nothing had been written)."""
+    record: dict[str, tuple[Path, tuple[int, int] | None]] = {}
+    token = _SETTLED.set(record)
+    try:
+        yield lambda: [path for path, (target, then) in record.items() if _file_identity(target) == then]
+    finally:
+        _SETTLED.reset(token)
 
 
 def _written_key(target: Path) -> str:

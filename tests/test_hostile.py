@@ -354,6 +354,27 @@ def test_viewer_screenshot_refuses_the_files_the_scene_and_dataset_brought(tmp_p
     assert digest(demo) == before
 
 
+def test_viewer_screenshot_interrupted_after_its_image_is_written_says_so(tmp_path, monkeypatch, capsys):
+    """Round 94a F3: a Ctrl-C as the screenshot's "wrote" line was logged said "interrupted; no partial output was
+    written" with the image written."""
+    import viewer.launch
+    from viewer.demo import demo_dir
+    from viewer.launch import main as viewer_main
+
+    real_info = viewer.launch.log.info
+
+    def info(message, *args):
+        if message.startswith("wrote"):
+            raise KeyboardInterrupt
+        real_info(message, *args)
+
+    monkeypatch.setattr(viewer.launch.log, "info", info)
+    shot = tmp_path / "s.png"
+    assert viewer_main([str(demo_dir() / "registered.ply"), "--screenshot", str(shot), "--width", "32", "--height", "32"]) == 1
+    assert f"ERROR: interrupted after writing {shot} (complete)" in capsys.readouterr().err
+    assert shot.stat().st_size > 0
+
+
 def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_ignored(tmp_path, capsys):
     """Was: `--threshold 0.5 --mode selection` with no query: the plain scene, no word, exit 0."""
     from viewer.demo import demo_dir
@@ -1280,6 +1301,33 @@ def test_a_signal_in_the_outputs_clean_up_leaves_no_hidden_copy(tmp_path, monkey
     np.testing.assert_array_equal(np.load(out), np.ones(3))  # the block had ended: the new output stands
     assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_a_signal_after_the_outputs_are_written_says_they_were(tmp_path, monkeypatch, capsys):
+    """Round 94a F1: a Ctrl-C as `segment` printed its table, its outputs in place, said only "interrupted; no partial
+    output file was left", as if nothing had been written."""
+    import drsplat.commands.segment as segment_cmd
+    from drsplat.scene import load_ply
+    from tests.conftest import tiny_registered
+
+    dataset, reg = tiny_registered(tmp_path, 0)
+    labels, coloured = tmp_path / "labels.npy", tmp_path / "coloured.ply"
+    command = ["segment", str(reg), "--embeddings", str(dataset / "text_embeddings.npy"), "--out", str(labels), "--ply", str(coloured)]
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(segment_cmd, "table_stream", interrupted)
+    assert main(command) == 1
+    err = capsys.readouterr().err
+    assert f"ERROR: interrupted after writing {labels} and {coloured} (complete); no partial output file was left" in err, err
+    assert np.load(labels).shape == (len(load_ply(reg).means),) and load_ply(coloured).means.shape == load_ply(reg).means.shape
+    labels.unlink()
+    coloured.unlink()
+    monkeypatch.setattr(segment_cmd, "coloured_scene", interrupted)  # before any output: nothing to name
+    assert main(command) == 1
+    assert "ERROR: interrupted; no partial output file was left" in capsys.readouterr().err
+    assert not labels.exists() and not coloured.exists()
 
 
 def test_held_stop_signals_reach_the_handlers_that_were_there():

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from drsplat.cameras import load_cameras
-from drsplat.cli import setup_logging, sigterm_as_interrupt
+from drsplat.cli import after_writing, setup_logging, sigterm_as_interrupt
 from drsplat.commands.common import MAX_IMAGE_WIDTH, ArgumentParser, Once, float_range, guard_args, int_range, nonneg_int, output_file
 from drsplat.defaults import ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS
 from drsplat.device import resolve_device, resolve_engine
-from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError, shown_path
+from drsplat.errors import Cancelled, DrsplatError, InputError, UsageError, and_list, shown_path
 from drsplat.features.clip import check_clip_config, checkpoint_file_problem
 from drsplat.features.weights import drsplat_cache_dir
 from drsplat.registration import register
@@ -31,7 +31,7 @@ from viewer.camera import ViewController, camera_for_size
 from viewer.demo import demo_available, demo_dir
 from viewer.paths import image_format
 from viewer.state import ViewerState
-from drsplat.utils import check_output_writable, describe_os_error, guard_outputs
+from drsplat.utils import check_output_writable, describe_os_error, guard_outputs, outputs_together, settled_outputs
 
 log = logging.getLogger("viewer")
 
@@ -209,11 +209,6 @@ def negatives_used(args: argparse.Namespace) -> bool:
     return bool(args.negatives) and bool(args.query or args.embedding or args.oracle) and args.mode != "segmentation"
 
 
-def and_list(items: list[str]) -> str:
-    """'a', 'a and b', 'a, b and c'."""
-    return items[0] if len(items) == 1 else f"{', '.join(items[:-1])} and {items[-1]}"
-
-
 def warn_unused_screenshot_flags(args: argparse.Namespace) -> None:
     """One warning per flag a screenshot does not use (round 54: they were taken without a word): --features (a
     screenshot registers nothing), --clip-checkpoint and --clip-config without a text query or negatives."""
@@ -304,7 +299,8 @@ def screenshot(args: argparse.Namespace, state) -> int:
         if given:
             log.warning("%s %s to a query (--query, --embedding or --oracle); the screenshot shows the scene's own colours",
                         and_list(given), "applies" if len(given) == 1 else "apply")
-    image = render_screenshot(state, camera, args.screenshot)
+    with outputs_together([args.screenshot]):  # recorded once written: what a signal after it can say (round 94a F3)
+        image = render_screenshot(state, camera, args.screenshot)
     mode = args.mode if wants_query or segmenting else "color"
     if image.size and not image.any() and not said_empty and not centres_in_view(drawn_means(state, mode), camera):  # black background
         log.warning("the screenshot is all background (black): %s", nothing_drawn_reason(mode, centres_in_view(state.scene.means, camera)))
@@ -435,6 +431,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    written_so_far = list  # what settled_outputs yields, for a signal before it began
     try:
         guard_args(args, ("screenshot",))
         if args.screenshot is not None:  # before loading, registering or rendering: an unwritable folder is the first thing to say
@@ -447,12 +444,15 @@ def _run(args: argparse.Namespace) -> int:
             return 1
         state = build_state(args, background_checks=args.screenshot is None)
         if args.screenshot is not None:
-            return screenshot(args, state)
+            with settled_outputs() as written_so_far:
+                return screenshot(args, state)
         warn_unused_window_flags(args)
         state.settings.query.negatives = args.negatives  # the window's text queries are scored with them (round 61a: ignored)
         return interactive(state)
     except (Cancelled, KeyboardInterrupt):
-        log.error("interrupted; no partial output was written" if args.screenshot is not None else
+        written = written_so_far()
+        log.error("interrupted" + after_writing(written) if written else
+                  "interrupted; no partial output was written" if args.screenshot is not None else
                   "interrupted before the viewer's window opened")  # a window writes nothing: the CLI's words did not fit (round 61a)
         return 1
     except StartupError:
