@@ -956,3 +956,28 @@ def test_eval_iou_says_which_scene_it_counts(registered, capsys):
     assert main(["eval", "iou", str(r["ply"]), "--synthetic", str(r["ds"])]) == 0
     first = capsys.readouterr().out.splitlines()[0]
     assert first.startswith(f"{r['ply'].name} on the {scene_rows} Gaussians of scene.ply ({registered_rows} registered), "), first
+
+
+def test_original_scene_matching_tells_a_pruned_clone_from_the_kept_one(registered, tmp_path):
+    """Round 95c F1: `--original` paired Gaussians at one position in row order, so a kept clone whose first copy was
+    pruned took the pruned copy's row (its volume and label); the rest of each row (rotation, scales, opacity, which
+    registration copies) tells them apart."""
+    import argparse
+
+    import plyfile
+
+    from drsplat.commands.eval import load_eval_scene
+
+    scene_rows = plyfile.PlyData.read(str(registered["ds"] / "scene.ply"))["vertex"].data
+    reg_ply = plyfile.PlyData.read(str(registered["ply"]))
+    reg_rows = reg_ply["vertex"].data
+    first = np.flatnonzero(np.isin(scene_rows["x"], reg_rows["x"][:1]) & np.isin(scene_rows["y"], reg_rows["y"][:1]))[0]
+    clone = scene_rows[[first]].copy()
+    clone["scale_0"] += 1.0  # densification's clone: the same centre, another size
+    kept_clone = reg_rows[[0]].copy()
+    kept_clone["scale_0"] += 1.0
+    plyfile.PlyData([plyfile.PlyElement.describe(np.concatenate([scene_rows, clone]), "vertex")]).write(str(tmp_path / "scene.ply"))
+    plyfile.PlyData([plyfile.PlyElement.describe(np.concatenate([reg_rows[1:], kept_clone]), "vertex")],
+                    comments=reg_ply.comments).write(str(tmp_path / "reg.ply"))  # the first copy pruned, the clone kept
+    _, _, index = load_eval_scene(argparse.Namespace(registered=tmp_path / "reg.ply", original=tmp_path / "scene.ply"))
+    assert index[-1] == len(scene_rows) and first not in index.tolist()

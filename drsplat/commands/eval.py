@@ -116,7 +116,7 @@ def _add_pseudo_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("pseudo-labels from a labelled point cloud")
     d = PSEUDO_DEFAULTS
     g.add_argument("--classes", type=class_list, default=d["classes"], metavar="A,B,...",
-                   help="keep only these label names, each once (others become unlabelled)")
+                   help="keep only these label names, each once (the others' points become unannotated and vote for 'no label')")
     g.add_argument("--radius", type=float_range(0.0, MAX_RADIUS, lo_open=True), default=d["radius"],
                    help=f"Mahalanobis radius r (points with D <= r^2 vote), at most {MAX_RADIUS:g}")
     g.add_argument("--vote", choices=("gaussian", "count"), default=d["vote"], help="vote weight exp(-D/2) (default) or 1")
@@ -459,7 +459,8 @@ def load_eval_scene(args: argparse.Namespace):
         return scene, field, None
     original = load_row_aligned_scene(args.original, "ground-truth labels of the original scene")
     try:
-        index = match_gaussians(original.means, scene.means)
+        index = match_gaussians(original.means, scene.means, original_rest=original.identity_rows(slice(None))[:, 3:],
+                                subset_rest=scene.identity_rows(slice(None))[:, 3:])
     except ValueError as exc:
         raise InputError(args.original, f"is not the scene {args.registered.name} was registered from: {exc}; if it was registered "
                                         "from a .spz or .splat copy of this scene, pass that copy as --original (.spz stores "

@@ -488,15 +488,21 @@ def voxel_segmentation_report(setup: VoxelSetup, scores: np.ndarray, gt_labels: 
     return IoUReport(task="seg", weighting="voxel", label_names=list(label_names), iou=iou, acc=acc, nonfinite=nonfinite)
 
 
-def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolerance: float = 1e-5) -> np.ndarray:
+def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolerance: float = 1e-5,
+                    original_rest: np.ndarray | None = None, subset_rest: np.ndarray | None = None) -> np.ndarray:
     """Index into the original scene of every Gaussian of a pruned copy, matched by position.
 
     original_means: [N, 3]; subset_means: [M, 3] (M ≤ N, e.g. a registered PLY written without
     --keep-unassigned). Returns [M] int64. Gaussians at one position (merged scenes hold exact
-    copies; round 59b: refused) are paired in row order, as registration keeps the original's order:
-    the copy's first such Gaussian takes the nearest original there not taken yet (`_pair_in_row_order`).
-    Raises ValueError when a Gaussian has no original within `tolerance` × the scene extent, or the
-    copy holds more Gaussians at a position than the original.
+    copies, densification leaves clones; round 59b: refused) are told apart by the rest of what
+    each row stores, `original_rest` [N, D] and `subset_rest` [M, D] (rotation, log-scales,
+    opacity: `GaussianScene.identity_rows`, which registration copies as they are): a copy's
+    Gaussian takes the original there whose rest is the same bits (round 95c F1: by row order
+    alone, a kept Gaussian whose co-located first copy was pruned took that copy's place, its
+    volume and label), then the ones left pair in row order, as registration keeps the original's
+    order, each the nearest original there not taken yet (`_pair_in_row_order`). Raises ValueError
+    when a Gaussian has no original within `tolerance` × the scene extent, or the copy holds more
+    Gaussians at a position than the original.
     """
     from scipy.spatial import cKDTree
 
@@ -512,20 +518,41 @@ def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolera
     if bad.any():
         raise ValueError(f"{int(bad.sum())} Gaussians have no counterpart in the original scene (e.g. #{int(np.flatnonzero(bad)[0])})")
     idx = idx.astype(np.int64)
+    radius = tolerance * max(extent, 1e-12)
     if len(np.unique(idx)) != len(idx):
-        _pair_in_row_order(tree, sub, idx, tolerance * max(extent, 1e-12))
+        _pair_in_row_order(tree, sub, idx, radius, _rest_keys(original_rest, subset_rest))
+    elif original_rest is not None and subset_rest is not None:
+        _pair_in_row_order(tree, sub, idx, radius, _rest_keys(original_rest, subset_rest), np.flatnonzero(_shares_a_position(tree, sub, idx, radius)))
     return idx
 
 
-def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float) -> None:
-    """Re-pair, in place, the rows of `idx` [M] whose nearest original another row has too. Rows with the same originals
-    within `radius` (the copies of one position) take them in row order, nearest first, then in row order (round 60a: the
+def _rest_keys(original_rest: np.ndarray | None, subset_rest: np.ndarray | None) -> tuple[list[bytes], list[bytes]] | None:
+    """Each row's rest (`match_gaussians`) as bytes, compared bit for bit; None when either is not given."""
+    if original_rest is None or subset_rest is None:
+        return None
+    as_bytes = lambda rest: [row.tobytes() for row in np.ascontiguousarray(rest, np.float32)]  # noqa: E731
+    return as_bytes(original_rest), as_bytes(subset_rest)
+
+
+def _shares_a_position(tree, sub: np.ndarray, idx: np.ndarray, radius: float) -> np.ndarray:
+    """[M] bool: the rows whose nearest original has another original within `radius` (a co-located group, which row
+    order alone could pair wrongly when one of its Gaussians was pruned)."""
+    others = tree.query(tree.data[idx], k=2)[0][:, 1] if tree.n > 1 else np.full(len(idx), np.inf)
+    return others <= radius
+
+
+def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, rest_keys: tuple[list[bytes], list[bytes]] | None = None,
+                       shared: np.ndarray | None = None) -> None:
+    """Re-pair, in place, the rows of `idx` [M] whose nearest original another row has too (or the rows `shared`). Rows
+    with the same originals within `radius` (the copies of one position) take first the originals whose rest is theirs
+    (`rest_keys`: originals', copy's), then the others in row order, nearest first, then in row order (round 60a: the
     first in row order took a distinct Gaussian 3e-5 away before the exact copy); each group in O(K log K) (round 60c:
     row by row, 10,000 copies of one position took 92 s). When a group finds too few free originals, a maximum
     bipartite matching of every shared row decides (row by row, one valid pairing was refused); ValueError when even
     that leaves a row without one."""
-    values, counts = np.unique(idx, return_counts=True)
-    shared = np.flatnonzero(np.isin(idx, values[counts > 1]))
+    if shared is None:
+        values, counts = np.unique(idx, return_counts=True)
+        shared = np.flatnonzero(np.isin(idx, values[counts > 1]))
     fixed = set(np.delete(idx, shared).tolist())  # the originals of the rows no other row shares
     taken = set(fixed)
     nears = tree.query_ball_point(sub[shared], r=radius)
@@ -538,9 +565,32 @@ def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float) ->
         if len(ranked) < len(members):
             _pair_by_matching(shared, nears, fixed, idx)
             return
-        for k, c in zip(members, ranked):
+        left, free = _pair_alike(members, ranked, shared, idx, rest_keys)
+        for k, c in zip(left, free):
             idx[shared[k]] = c
-        taken.update(ranked[: len(members)])
+        taken.update(idx[shared[members]].tolist())
+
+
+def _pair_alike(members: list[int], ranked: list[int], shared: np.ndarray, idx: np.ndarray,
+                rest_keys: tuple[list[bytes], list[bytes]] | None) -> tuple[list[int], list[int]]:
+    """Pair, in place in `idx`, each of a co-located group's `members` with the first of the free originals `ranked` whose
+    rest is the same bits; returns the members and the originals left to pair in row order."""
+    if rest_keys is None:
+        return members, ranked
+    originals, copies = rest_keys
+    alike: dict[bytes, list[int]] = {}
+    for c in reversed(ranked):  # each list nearest last, so pop() takes the nearest (O(K) a group: 3,000 copies of a position)
+        alike.setdefault(originals[c], []).append(c)
+    used = set()
+    left = []
+    for k in members:
+        same = alike.get(copies[shared[k]])
+        if same:
+            idx[shared[k]] = same.pop()
+            used.add(int(idx[shared[k]]))
+        else:
+            left.append(k)
+    return left, [c for c in ranked if c not in used]
 
 
 def _pair_by_matching(shared: np.ndarray, nears: list, taken: set, idx: np.ndarray) -> None:
