@@ -35,7 +35,7 @@ from drsplat.cameras import Camera
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView
 from drsplat.errors import DrsplatError
-from drsplat.eval.lerf import camera_for_view, mask_iou
+from drsplat.eval.lerf import annotation_on_pinhole, camera_for_view, mask_iou, say_annotations_moved
 from drsplat.memory import available_memory, format_size
 from drsplat.query import query_rows, relevancy_from_scores
 from drsplat.raster import NEAR, prepare_scene, rasterize_topk
@@ -312,6 +312,7 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
     truth is left out as in `lerf.lerf_2d_report`. near: the near plane the views are rendered with.
     """
     by_name = {c.name: c for c in cameras}
+    say_annotations_moved(cameras)
     prepared = prepare_scene(scene)
     assigned = np.asarray(field.assigned() if assigned is None else assigned, bool)
     rows: list[LangSplatRow] = []
@@ -324,6 +325,7 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
             missing.append(view.name)
             continue
         skipped += [(view.name, c) for c in view.skipped]
+        view, seen = annotation_on_pinhole(view, cam)
         names = [c for c in view.masks if c in queries]
         unqueried |= {c for c in view.masks if c not in queries}
         if not names:
@@ -343,8 +345,11 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
                             view.path or "annotation", view.name, category)
                 skipped.append((view.name, category))
                 continue
-            pred = langsplat_mask(relevancy[q], mask_threshold)
-            hit = peak_in_boxes(relevancy[q], view.boxes.get(category, np.zeros((0, 4))))
+            relevant = relevancy[q] if seen is None or not seen.any() else np.where(seen, relevancy[q], relevancy[q][seen].min())  # no peak off the photo
+            pred = langsplat_mask(relevant, mask_threshold)
+            if seen is not None:
+                pred &= seen
+            hit = peak_in_boxes(relevant, view.boxes.get(category, np.zeros((0, 4))))
             rows.append(LangSplatRow(view.name, category, mask_iou(pred, gt), bool(hit), coverage))
     if missing:
         log.warning("%d annotated views have no camera of the same name: %s", len(missing), ", ".join(missing[:5]))
