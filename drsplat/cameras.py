@@ -27,7 +27,7 @@ import numpy as np
 
 from drsplat.errors import InputError
 from drsplat.scene import MAX_COORDINATE, counted, quat_to_rotmat
-from drsplat.utils import atomic_path, read_json, regular_file
+from drsplat.utils import atomic_path, clipped, read_json, regular_file
 
 log = logging.getLogger(__name__)
 
@@ -169,6 +169,11 @@ UNDISTORT_HINT = (
     "--input_path sparse/0 --output_path undistorted --output_type COLMAP` (as 3DGS's convert.py does) "
     "and point --source at the undistorted folder"
 )
+TRANSFORMS_UNDISTORT_HINT = (
+    "3DGS is trained on undistorted images: undistort them with the tool that made this file (nerfstudio's "
+    "ns-process-data; COLMAP's image_undistorter where a COLMAP model of them exists) and list the undistorted images "
+    "with a pinhole or OPENCV camera_model"
+)  # a transforms.json dataset seldom has the sparse/0 that UNDISTORT_HINT names (round 95b F3)
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".webp", ".bmp", ".tif", ".tiff")
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
 IMAGE_SUFFIXES_LOWER = frozenset(s.lower() for s in IMAGE_SUFFIXES)
@@ -1045,8 +1050,8 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
     if not isinstance(frames, list):
         raise InputError(path, "has no 'frames' list", field="frames")
     camera_model = meta.get("camera_model", "OPENCV")
-    if camera_model not in ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE"):
-        raise InputError(path, f"uses an unsupported camera_model; only pinhole and OpenCV (k1, k2, p1, p2) are supported; {UNDISTORT_HINT}", field="camera_model")
+    if camera_model not in TRANSFORMS_CAMERA_MODELS:
+        raise InputError(path, camera_model_problem(camera_model), field="camera_model")
     paths = DatasetPaths(path.parent, path)
     cameras, missing = [], []
     listed_over_keys: Counter = Counter()  # objects whose distortion_params list and own keys disagree (the list wins)
@@ -1117,7 +1122,7 @@ def read_transforms_json(path: Path, require_images: bool = True) -> tuple[list[
         dist = np.array([_number(path, rec, k, 0.0, where=where) for k in DISTORTION_FIELDS])
         unread = [k for k in ("k3", "k4") if _number(path, rec, k, 0.0, where=where) != 0]
         if unread:
-            raise InputError(path, f"has {unread[0]} distortion{where}, which drsplat does not undistort; {UNDISTORT_HINT}", field=unread[0])
+            raise InputError(path, f"has {unread[0]} distortion{where}, which drsplat does not undistort; {TRANSFORMS_UNDISTORT_HINT}", field=unread[0])
         if np.allclose(c2w[:3, :3], 0):
             raise InputError(path, f"frame {i} has an all-zero rotation in its transform_matrix", field="transform_matrix")
         check_rotation(path, f"frame {i}", c2w[:3, :3], "transform_matrix")  # the OpenGL flip keeps a rotation a rotation
@@ -1185,7 +1190,23 @@ def refuse_other_lens(path: Path, meta: dict, frame: dict, where: str) -> None:
     if lens is not None:
         kind = {"is_fisheye": "an OpenCV fisheye lens (is_fisheye with k1..k4, p1 or p2)", "latlong": "a lat-long panorama",
                 "equirectangular": "an equirectangular panorama", "orthographic": "an orthographic camera"}.get(lens, "an f-theta lens")
-        raise InputError(path, f"describes {kind}{where}, which no pinhole camera is; {UNDISTORT_HINT}", field=lens)
+        hint = ("export perspective views of the panorama and list those" if "panorama" in kind else TRANSFORMS_UNDISTORT_HINT)
+        raise InputError(path, f"describes {kind}{where}, which no pinhole camera is; {hint}", field=lens)
+
+
+TRANSFORMS_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")  # nerfstudio's names, upper case as it reads them
+
+
+def camera_model_problem(camera_model: object) -> str:
+    """Why a transforms.json's camera_model (not one of TRANSFORMS_CAMERA_MODELS) is refused, naming the value given
+    (round 95b F3: "opencv" was told that only pinhole and OpenCV are read) and a way out that fits it."""
+    shown = clipped(json.dumps(camera_model, ensure_ascii=False), 60)
+    spelt = next((name for name in TRANSFORMS_CAMERA_MODELS if isinstance(camera_model, str) and camera_model.strip().upper() == name), None)
+    if spelt is not None:
+        return f'has camera_model {shown}: write it "{spelt}", as nerfstudio reads these names (upper case)'
+    hint = ("no pinhole camera shows a whole panorama: export perspective views of it and list those" if camera_model == "EQUIRECTANGULAR"
+            else TRANSFORMS_UNDISTORT_HINT)
+    return f"has camera_model {shown}, which drsplat does not read; it reads OPENCV (k1, k2, p1, p2), PINHOLE and SIMPLE_PINHOLE; {hint}"
 
 
 def _object_lens(path: Path, obj: dict, lens: str | None, where: str) -> str | None:
@@ -1341,7 +1362,8 @@ def read_3dgs_cameras_json(path: Path, images_dir: Path | None, require_images: 
         check_centre(path, f"camera {i}", pos, "position")
         R = rot.T
         camera = Camera(R=R, t=-R @ pos, fx=_number(path, rec, "fx", where=where), fy=_number(path, rec, "fy", where=where),
-                        cx=width / 2, cy=height / 2, width=width, height=height, image_path=image, name=Path(name).stem)
+                        cx=width / 2, cy=height / 2, width=width, height=height, image_path=image,
+                        name=dataset_stem(name, is_file_name=False))  # "inside.000" (of inside.000.png) is no "inside" (round 95b F2)
         validate_camera(camera, path, f"camera {i}")
         cameras.append(camera)
     return cameras, missing
@@ -1513,7 +1535,10 @@ def detect_dataset(source: str | Path) -> tuple[str, Path]:
         if found is not None:
             return reader.kind, found
     if src.is_file():
-        raise InputError(src, "is not a dataset folder, transforms.json or cameras.json")
+        model_file = src.suffix in (".bin", ".txt") and src.stem in ("cameras", "images", "points3D")
+        raise InputError(src, "is not a dataset folder, transforms.json or cameras.json" + (
+            f"; it is a file of a COLMAP model: give the dataset folder (the one holding images/ and sparse/), or {src.parent}"
+            if model_file else ""))  # round 95b F6
     if not src.is_dir():  # a device or a pipe: "has no COLMAP model" would read as if it were a folder
         raise InputError(src, "is not a dataset folder, transforms.json or cameras.json (it is no regular file or folder)")
     raise InputError(src, "has no " + ", no ".join(r.description for r in DATASET_READERS) + other_colmap_models(src))
@@ -1589,7 +1614,11 @@ def _missing_hint(kind: str, found: Path, missing: str) -> str:
     if "\\" in missing and os.sep != "\\":  # a camera file written on Windows: its separators are part of one file name here
         slashed = image_folder(kind, found) / missing.replace("\\", "/")
         if slashed.exists() or any(slashed.with_name(slashed.name + suffix).exists() for suffix in IMAGE_SUFFIXES):
-            return hint + f"; the name holds Windows backslashes ('\\'), which are no folder separators here: {slashed} is there (write '/' in {found.name})"
+            names = next((found / f for f in ("images.bin", "images.txt") if (found / f).is_file()), found) if kind == "colmap" else found
+            return hint + f"; the name holds Windows backslashes ('\\'), which are no folder separators here: {slashed} is there (write '/' in {names.name})"
+    trimmed = missing.strip()
+    if trimmed != missing and trimmed and (image_folder(kind, found) / trimmed).exists():  # an invisible blank at a line's end (round 95b F5)
+        return f"e.g. {json.dumps(str(wanted))}; the name {json.dumps(missing)} has blanks at its ends, and {trimmed} is there: remove them"
     if not wanted.parent.is_dir():
         return hint + f"; the folder {wanted.parent} does not exist" + _downscaled_folders_hint(wanted.parent)
     if os.path.lexists(wanted):

@@ -140,6 +140,22 @@ def test_undistortion_moves_a_dot_to_its_pinhole_position(tmp_path):
     assert abs(u + 0.5 - target[0]) <= 1.5 and abs(v + 0.5 - target[1]) <= 1.5
 
 
+@pytest.mark.parametrize("model, words", [
+    ("opencv", 'has camera_model "opencv": write it "OPENCV"'),
+    ("OPENCV_FISHEYE", 'has camera_model "OPENCV_FISHEYE", which drsplat does not read; it reads OPENCV (k1, k2, p1, p2), PINHOLE and '
+                       "SIMPLE_PINHOLE; 3DGS is trained on undistorted images: undistort them with the tool that made this file"),
+    ("EQUIRECTANGULAR", "no pinhole camera shows a whole panorama"),
+    (7, "has camera_model 7, which drsplat does not read"),
+])
+def test_a_transforms_camera_model_refused_is_named_with_a_way_out_that_fits_it(tmp_path, model, words):
+    """Round 95b F3: every refused camera_model was told "only pinhole and OpenCV are supported" ("opencv" too) and sent
+    to `colmap image_undistorter --input_path sparse/0`, which a transforms.json dataset seldom has."""
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_model": model, "frames": []}))
+    with pytest.raises(InputError, match="camera_model") as exc:
+        load_cameras(tmp_path, require_images=False)
+    assert words in str(exc.value) and "sparse/0" not in str(exc.value)
+
+
 def test_distorted_colmap_model_is_refused_with_instructions(tmp_path):
     sparse = tmp_path / "sparse" / "0"
     sparse.mkdir(parents=True)
@@ -314,6 +330,23 @@ def test_3dgs_cameras_json(tmp_path):
     for a, b in zip(cameras, loaded):
         np.testing.assert_allclose(a.R, b.R, atol=1e-12)
         np.testing.assert_allclose(a.t, b.t, atol=1e-9)
+
+
+def test_3dgs_cameras_json_names_with_dots_keep_them(tmp_path):
+    """Round 95b F2: 3DGS writes img_name "inside.000" for inside.000.png; the reader cut it to "inside", so two such
+    views were refused as one name (and blamed on a camera rig's folders)."""
+    from PIL import Image
+
+    (tmp_path / "images").mkdir()
+    records = []
+    for i, name in enumerate(("inside.000", "inside.001", "frame.png")):
+        Image.new("RGB", (64, 48)).save(tmp_path / "images" / (name if name.endswith(".png") else name + ".png"))
+        records.append({"id": i, "img_name": name, "width": 64, "height": 48, "position": [0.1 * i, 0, -4],
+                        "rotation": np.eye(3).tolist(), "fx": 50.0, "fy": 50.0})
+    (tmp_path / "cameras.json").write_text(json.dumps(records))
+    loaded = load_cameras(tmp_path)
+    assert [c.name for c in loaded] == ["inside.000", "inside.001", "frame"]
+    assert [c.image_path.name for c in loaded] == ["inside.000.png", "inside.001.png", "frame.png"]
 
 
 def _tiny_colmap(root, image_names=("a.png", "b.png")):
@@ -1632,6 +1665,25 @@ def test_a_windows_backslash_image_path_is_named_as_the_cause(tmp_path):
     with pytest.raises(InputError, match=r"the name holds Windows backslashes \('\\'\), which are no folder separators here: "
                                          r".*images/sub/a.png is there \(write '/' in transforms.json\)"):
         load_cameras(tmp_path)
+
+
+def test_a_colmap_models_windows_names_blanks_and_files_are_named_as_the_cause(tmp_path):
+    """Round 95b F4-F6: a COLMAP model's backslash names were to be rewritten "in 0" (the model's folder); a file_path
+    with a blank at its end got no hint (the blank invisible at the line's end); --source naming a model's file was
+    "not a dataset folder, transforms.json or cameras.json" without a word of what to give."""
+    windows = _tiny_colmap(tmp_path / "win", image_names=("sub/a.png",))
+    model = windows / "sparse" / "0" / "images.txt"
+    model.write_text(model.read_text().replace("sub/a.png", "sub\\a.png"))
+    with pytest.raises(InputError, match=r"images/sub/a.png is there \(write '/' in images.txt\)"):
+        load_cameras(windows)
+    blank = _tiny_colmap(tmp_path / "blank", image_names=("a.png",))
+    c2w = np.eye(4)
+    c2w[2, 3] = 4.0
+    (blank / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": [{"file_path": "images/a.png ", "transform_matrix": c2w.tolist()}]}))
+    with pytest.raises(InputError, match=r'the name "images/a.png " has blanks at its ends, and images/a.png is there: remove them'):
+        load_cameras(blank / "transforms.json")
+    with pytest.raises(InputError, match=r"it is a file of a COLMAP model: give the dataset folder \(the one holding images/ and sparse/\), or "):
+        load_cameras(windows / "sparse" / "0" / "cameras.txt")
 
 
 def test_a_nerfstudio_run_oriented_by_pca_is_warned_about(tmp_path, caplog):
