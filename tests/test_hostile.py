@@ -375,6 +375,27 @@ def test_viewer_screenshot_interrupted_after_its_image_is_written_says_so(tmp_pa
     assert shot.stat().st_size > 0
 
 
+def test_viewer_source_without_a_scene_is_refused_and_a_demo_preset_beside_one_is_warned_of(tmp_path, capsys):
+    """Round 95a F4: `main.py --source DIR` opened the bundled demo scene with DIR's cameras, without a word; F5:
+    `--demo-preset` beside a SCENE was ignored without one."""
+    from viewer.demo import demo_dir
+    from viewer.launch import main as viewer_main
+
+    with pytest.raises(SystemExit) as exc:
+        viewer_main(["--source", str(demo_dir()), "--screenshot", str(tmp_path / "s.png")])
+    assert exc.value.code == 2 and "--source needs the SCENE trained on it" in capsys.readouterr().err
+    assert not (tmp_path / "s.png").exists()
+    shot = tmp_path / "t.png"
+    assert viewer_main([str(demo_dir() / "registered.ply"), "--demo-preset", "tiny", "--screenshot", str(shot), "--width", "32", "--height", "32"]) == 0
+    assert "--demo-preset applies without SCENE (the demo it opens); it is ignored" in capsys.readouterr().err and shot.exists()
+    # F6: --threshold with --mode heatmap said "N Gaussians selected", the picture the same for any threshold
+    demo = demo_dir()
+    assert viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--oracle", "mug", "--mode", "heatmap", "--threshold", "0.3",
+                        "--screenshot", str(shot), "--width", "32", "--height", "32"]) == 0
+    err = capsys.readouterr().err
+    assert "--mode heatmap colours every Gaussian by its score, so it is ignored" in err and "selected" not in err, err
+
+
 def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_ignored(tmp_path, capsys):
     """Was: `--threshold 0.5 --mode selection` with no query: the plain scene, no word, exit 0."""
     from viewer.demo import demo_dir
@@ -598,6 +619,23 @@ def test_viewer_says_how_many_splats_it_cannot_draw_for_a_covariance_beyond_floa
     assert [r.getMessage() for r in caplog.records] == [
         "1 of 4 Gaussians have a covariance beyond float32 (a scale above ~1e19: are raw scales stored where 3DGS stores their "
         "logs?); the viewer does not draw them"]
+
+
+def test_viewer_draws_no_gaussian_that_drsplat_renders_not():
+    """Round 95a F1: Gaussians beyond MAX_COORDINATE (a scene scaled by 1e30), which the load says are not rendered and
+    a click (picked by drsplat.raster) never found, were drawn by the viewer's shader; SH beyond MAX_SH_COEFFICIENT too."""
+    pytest.importorskip("moderngl")
+    from drsplat.raster import prepare_scene
+    from drsplat.scene import GaussianScene
+    from viewer.renderer import splat_geometry
+
+    means = np.array([[0.0, 0, 0], [2e15, 0, 0], [0, -1e30, 0], [1, 1, 1]], np.float32)
+    sh = np.zeros((4, 1, 3), np.float32)
+    sh[3, 0, 1] = 1e31
+    scene = GaussianScene(means=means, quats=np.tile(np.float32([1, 0, 0, 0]), (4, 1)), log_scales=np.zeros((4, 3), np.float32),
+                          opacity_logits=np.zeros(4, np.float32), sh=sh)
+    drawn = np.isfinite(splat_geometry(scene)[:, 1:]).all(axis=(1, 2))
+    assert drawn.tolist() == prepare_scene(scene, warn=False).finite.tolist() == [True, False, False, False]
 
 
 def test_viewer_home_view_of_means_near_float32_max_has_no_numpy_warning():

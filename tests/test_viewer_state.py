@@ -86,6 +86,12 @@ def test_round_86d_viewer_findings(state, tmp_path):
     # the query's own embedding file is an input
     query_file = tmp_path / "q.npy"
     assert not state.guard_output(query_file, "the screenshot") and "embedding file of the query shown" in state.messages[-1].text
+    # round 95a F2: the CLIP checkpoint and config the viewer was started with (a window screenshot replaced the checkpoint)
+    state.clip_checkpoint, state.clip_config = tmp_path / "vitb16", tmp_path / "config.json"
+    for given in (state.clip_checkpoint, state.clip_config):
+        given.write_bytes(b"weights")
+        assert not state.guard_output(given, "the screenshot") and "--clip-c" in state.messages[-1].text, state.messages[-1].text
+    state.clip_checkpoint = state.clip_config = None
     # a field whose every Gaussian is unassigned
     none = ViewerState()
     reg = state.scene_path
@@ -427,6 +433,17 @@ def test_an_export_while_a_segmentation_is_shown_says_what_it_writes(state, tmp_
     assert state.run_oracle_query(0) and state.run_segmentation("  ") and state.mode == "segmentation"
     assert state.export_selection(tmp_path / "b.ply", "standard")
     assert "the query's selection, not the segmentation shown" in state.messages[-1].text
+
+
+def test_an_empty_selections_export_gives_the_best_score_as_the_cli_does(state, tmp_path):
+    """Round 95a F8: with a query run and the threshold above every score, the export said "run a query and lower the
+    threshold"; `drsplat query --out` gives the best score."""
+    assert state.run_oracle_query(0)
+    best = float(state.query.scores[state.query.assigned].max())
+    state.set_threshold(1.0)
+    assert state.export_selection(tmp_path / "a.ply", "standard") is None
+    assert f"no Gaussian scores >= 1.0000 (the best score is {best:.4f}): lower the threshold" in state.messages[-1].text
+    assert "run a query" not in state.messages[-1].text and not (tmp_path / "a.ply").exists()
 
 
 def test_an_exports_confirmation_covers_its_codebook_format_and_query(tmp_path):

@@ -157,7 +157,7 @@ def build_state(args: argparse.Namespace, background_checks: bool = False):
     scene_path, source = args.scene, args.source
     if scene_path is None:
         scene_path, demo_source = demo_scene(args.demo_preset)
-        source = source or demo_source
+        source = demo_source
     if not state.load_scene(scene_path):
         raise StartupError(state.messages[-1].text)
     if args.features is not None:
@@ -281,7 +281,10 @@ def screenshot(args: argparse.Namespace, state) -> int:
             log.warning("%s %s to a query's selection, not to --mode segmentation (each Gaussian is coloured by its best label); "
                         "%s", and_list(unused), "applies" if len(unused) == 1 else "apply", "it is ignored" if len(unused) == 1 else "they are ignored")
     elif wants_query:
-        if args.threshold is not None:
+        if args.threshold is not None and args.mode == "heatmap":  # round 95a F6: "N Gaussians selected", the image the same for any
+            log.warning("--threshold applies to --mode highlight, selection and hide_selection; --mode heatmap colours every Gaussian "
+                        "by its score, so it is ignored")
+        elif args.threshold is not None:
             state.set_threshold(args.threshold)
             state.info(f"--threshold {args.threshold:g}: {counted(int(state.selection.sum()), 'Gaussian', 'Gaussians')} selected")
         state.set_mode(args.mode)
@@ -419,7 +422,12 @@ def main(argv: list[str] | None = None) -> int:
     for flag in ("query", "oracle"):  # a blank one was ignored: a screenshot without the query asked for
         if getattr(args, flag) is not None and not getattr(args, flag).strip():
             parser.error(f"--{flag} is empty: give the {'phrase to search for' if flag == 'query' else 'label to query'}")
+    if args.scene is None and args.source is not None:  # round 95a F4: the bundled demo opened with DIR's cameras, no word
+        parser.error("--source needs the SCENE trained on it: main.py SCENE --source DIR (without SCENE the bundled demo opens "
+                     "with its own dataset)")
     setup_logging(args.verbose)
+    if args.scene is not None and args.demo_preset is not None:  # round 95a F5: taken without a word
+        log.warning("--demo-preset applies without SCENE (the demo it opens); it is ignored")
     code = None
     try:
         with sigterm_as_interrupt():  # SIGTERM closes the window as Ctrl-C does: one line, exit 1 (not a silent 143)

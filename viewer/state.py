@@ -624,13 +624,24 @@ class ViewerState:
             return np.zeros(self.num_gaussians, bool)
         return select(self.query.scores, self.threshold, self.query.assigned)
 
+    def scored(self) -> np.ndarray:
+        """The finite scores of the query's Gaussians with a feature (the others score 0, which stretched a relevancy
+        scale down to 0: round 76a F4); empty without a query."""
+        if self.query is None:
+            return np.zeros(0, np.float32)
+        s = self.query.scores if self.query.assigned is None else self.query.scores[self.query.assigned]
+        return s[np.isfinite(s)]
+
+    def best_score(self) -> float:
+        """The highest of `scored`, NaN when there is none."""
+        s = self.scored()
+        return float(s.max()) if s.size else float("nan")
+
     def score_range(self) -> tuple[float, float]:
-        """The colour scale's ends: the finite scores of the Gaussians with a feature (the others score 0, which stretched
-        a relevancy scale down to 0: round 76a F4)."""
+        """The colour scale's ends: the range of `scored`."""
         if self.query is None:
             return 0.0, 1.0
-        s = self.query.scores if self.query.assigned is None else self.query.scores[self.query.assigned]
-        s = s[np.isfinite(s)]
+        s = self.scored()
         if s.size == 0:
             return 0.0, 1.0
         lo, hi = float(s.min()), float(s.max())
@@ -696,6 +707,7 @@ class ViewerState:
         if self.source_dir is not None:
             inputs.update(dataset_inputs(self.source_dir, self.dataset_cameras or self.cameras))
             inputs.update({f"--source's {name}": self.source_dir / name for name in (ORACLE_LABEL_NAMES, ORACLE_TEXT_EMBEDDINGS)})
+        inputs.update({"--clip-checkpoint": self.clip_checkpoint, "--clip-config": self.clip_config})  # round 95a F2, as the CLI's guard
         if self.query is not None and self.query.file is not None:  # round 86d F5: a screenshot replaced it, which the CLI refuses
             inputs["embedding file of the query shown"] = self.query.file
         if self.registration is not None and self.registration.running:  # it replaces them when it ends: an export there would be lost
@@ -758,7 +770,9 @@ class ViewerState:
             self.error("nothing is shown to export: every Gaussian is selected and hidden; raise the threshold, or leave hide selection")
             return None
         if count == 0:
-            self.error("the selection is empty: run a query and lower the threshold"
+            why = ("run a query and lower the threshold" if self.query is None or self.mode == "segmentation" else
+                   f"no Gaussian scores >= {self.threshold:.4f} (the best score is {self.best_score():.4f}): lower the threshold")  # round 95a F8, as the CLI says it
+            self.error(f"the selection is empty: {why}"
                        + (" (an export writes a query's selection; the segmentation's colours are written by drsplat segment --ply)"
                           if self.mode == "segmentation" else ""))
             return None
