@@ -396,6 +396,24 @@ def test_viewer_source_without_a_scene_is_refused_and_a_demo_preset_beside_one_i
     assert "--mode heatmap colours every Gaussian by its score, so it is ignored" in err and "selected" not in err, err
 
 
+def test_viewer_segmentation_with_unreadable_oracle_files_says_they_could_not_be_read(tmp_path, capsys):
+    """Round 95a F7: `--mode segmentation` with a --source whose label names repeat one said "pass --source DIR with
+    gt/label_names.json and text_embeddings.npy", which the user had done; `--oracle` said the right thing."""
+    import shutil
+
+    from viewer.demo import demo_dir
+    from viewer.launch import main as viewer_main
+
+    demo = Path(shutil.copytree(demo_dir(), tmp_path / "demo"))
+    names = json.loads((demo / "gt" / "label_names.json").read_text())
+    (demo / "gt" / "label_names.json").write_text(json.dumps(names[:-1] + [names[0]]))
+    for flags, said in ((["--mode", "segmentation"], "--mode segmentation"), (["--oracle", names[1]], "--oracle")):
+        code = viewer_main([str(demo / "registered.ply"), "--source", str(demo), "--screenshot", str(tmp_path / "s.png"), "--width", "32",
+                            "--height", "32", *flags])
+        err = capsys.readouterr().err
+        assert code == 1 and f"{said}: the oracle labels of {demo} could not be read" in err, err
+
+
 def test_viewer_screenshot_threshold_and_mode_without_a_query_are_not_silently_ignored(tmp_path, capsys):
     """Was: `--threshold 0.5 --mode selection` with no query: the plain scene, no word, exit 0."""
     from viewer.demo import demo_dir

@@ -446,6 +446,16 @@ def test_an_empty_selections_export_gives_the_best_score_as_the_cli_does(state, 
     assert "run a query" not in state.messages[-1].text and not (tmp_path / "a.ply").exists()
 
 
+def test_a_non_finite_oracle_vector_is_named_by_its_label(state):
+    """Round 95a F9: a NaN row of text_embeddings.npy ("mug", row 3) was reported as "query 0" (the one row given)."""
+    state.oracle.embeddings = state.oracle.embeddings.copy()
+    state.oracle.embeddings[3] = np.nan
+    assert not state.run_oracle_query(3)
+    name = state.oracle.names[3]
+    assert f"the oracle vector of {name!r} (row 3 of text_embeddings.npy) holds non-finite values" in state.messages[-1].text
+    assert state.run_oracle_query(0)
+
+
 def test_an_exports_confirmation_covers_its_codebook_format_and_query(tmp_path):
     """Round 62b: a drsplat export to a new PLY name replaced the codebook file of that name unasked (only the PLY was
     asked about), and a confirmation outlived the format, scene or query it was asked for."""

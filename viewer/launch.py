@@ -187,6 +187,13 @@ def check_screenshot_size(width: int, height: int, args: argparse.Namespace) -> 
 SCREENSHOT_FLAGS = ("camera", "query", "embedding", "oracle", "threshold", "width", "height")  # read by --screenshot only
 
 
+def unread_oracle(state, flag: str) -> None:
+    """DrsplatError for `flag` when the dataset has oracle label files that could not be read (the load warned why)."""
+    src = state.source_dir
+    if src is not None and (src / ORACLE_LABEL_NAMES).exists() and (src / ORACLE_TEXT_EMBEDDINGS).exists():
+        raise DrsplatError(f"{flag}: the oracle labels of {src} could not be read (the warning above names the file and why)")
+
+
 def warn_unused_window_flags(args: argparse.Namespace) -> None:
     """One warning per screenshot flag given without --screenshot: the window opened without a word of them
     (round 61a: --oracle mug --threshold 0.9 --mode heatmap --camera 3 left it at the home view, no query)."""
@@ -257,9 +264,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
         ok = state.run_embedding_query(args.embedding)
     elif args.oracle:
         if state.oracle is None:
-            src = state.source_dir
-            if src is not None and (src / ORACLE_LABEL_NAMES).exists() and (src / ORACLE_TEXT_EMBEDDINGS).exists():
-                raise DrsplatError(f"--oracle: the oracle labels of {src} could not be read (the warning above names the file and why)")
+            unread_oracle(state, "--oracle")
             raise DrsplatError("--oracle needs a synthetic dataset (--source with gt/label_names.json and text_embeddings.npy)")
         if (problem := state.oracle_problem()) is not None:
             raise DrsplatError(f"--oracle: {problem}")
@@ -270,6 +275,7 @@ def screenshot(args: argparse.Namespace, state) -> int:
         raise StartupError(state.messages[-1].text)
     if args.mode == "segmentation":
         if state.oracle is None and state.field is not None:  # no label phrases on the command line: run_segmentation(None) needs the oracle
+            unread_oracle(state, "--mode segmentation")  # round 95a F7: "pass --source DIR with ..." to a user who had
             raise DrsplatError("--mode segmentation segments by the oracle labels of a synthetic dataset: pass --source DIR with "
                                "gt/label_names.json and text_embeddings.npy (labels typed as phrases are segmented in the viewer window)")
         if not state.run_segmentation(None):

@@ -501,6 +501,10 @@ class ViewerState:
         if self.oracle is None or not 0 <= index < len(self.oracle.names):
             self.error(f"no oracle label {index}")
             return False
+        if not np.isfinite(self.oracle.embeddings[index]).all():  # round 95a F9: the library numbered the one row it was given "query 0"
+            self.error(f"the oracle vector of {self.oracle.names[index]!r} (row {index} of {ORACLE_TEXT_EMBEDDINGS}) holds non-finite values: "
+                       "it has no direction to score by")
+            return False
         try:
             scores, metric = self._score(self.oracle.embeddings[index])
         except Exception as exc:  # noqa: BLE001
