@@ -47,8 +47,10 @@ def stop_signals_held() -> Iterator[None]:
         yield  # None: a handler set outside Python, which could not be put back
         return
     held: list[int] = []
-    previous = {signum: signal.signal(signum, lambda signum, _frame: held.append(signum)) for signum in STOP_SIGNALS}
-    try:
+    previous = {signum: signal.getsignal(signum) for signum in STOP_SIGNALS}  # read first: a signal between two installs
+    try:  # left the first one installed for good (round 96a F2: a caller's Ctrl-C swallowed from then on)
+        for signum in STOP_SIGNALS:
+            signal.signal(signum, lambda signum, _frame: held.append(signum))
         yield
     finally:
         for signum, handler in previous.items():

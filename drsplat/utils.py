@@ -407,10 +407,10 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     settled = [copy is None for copy in kept]  # a kept copy is let go only once its file needs it no more
     written: dict[str, tuple[int, int] | None] = {}
     token = _WRITTEN.set(written)
+    ended = False
     try:
         yield
-        settled = [True] * len(kept)
-        _note_settled(given, targets, written)
+        ended = True  # all the rest under the held signals (round 96a F1: a signal before them left the kept copies)
     except BaseException:
         for i, (target, then, copy) in enumerate(zip(targets, before, kept)):
             now = _file_identity(target)
@@ -430,6 +430,9 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
         raise
     finally:
         with stop_signals_held():
+            if ended:
+                settled = [True] * len(kept)
+                _note_settled(given, targets, written)
             _WRITTEN.reset(token)
             outer = _WRITTEN.get()
             if outer is not None:

@@ -517,3 +517,35 @@ def test_an_annotation_of_a_distorted_photo_is_moved_onto_the_pinhole_render():
     assert abs(x1 - np.flatnonzero(truth.any(axis=0)).min()) <= 2, "the box follows the object onto the pinhole pixels"
     plain = Camera(R=np.eye(3), t=np.zeros(3), fx=100.0, fy=100.0, cx=80.0, cy=60.0, width=w, height=h, name="v")
     assert annotation_on_pinhole(view, plain) == (view, None)
+    # round 96a F7: a one-pixel box on a photo pixel that no pinhole pixel samples (the lens spreads them) was dropped
+    from drsplat.cameras import distorted_source
+
+    su, sv = distorted_source(cam, (h, w))
+    sampled = np.zeros((h, w), bool)
+    ok = (np.rint(su) >= 0) & (np.rint(su) < w) & (np.rint(sv) >= 0) & (np.rint(sv) < h)
+    sampled[np.rint(sv[ok]).astype(int), np.rint(su[ok]).astype(int)] = True
+    gy, gx = np.nonzero(~sampled[h // 2:, w // 2:])
+    px, py = gx[0] + w // 2, gy[0] + h // 2
+    tiny = AnnotatedView("v", w, h, {"ball": photo}, boxes={"ball": np.array([[px, py, px, py]], np.float64)})
+    box = annotation_on_pinhole(tiny, cam)[0].boxes["ball"][0]
+    assert np.hypot(su[int(box[1]), int(box[0])] - px, sv[int(box[1]), int(box[0])] - py) <= 1.5
+
+
+def test_a_mask_the_lens_moves_off_the_view_is_not_called_empty(caplog):
+    """Round 96a F8: an annotation wholly outside what the pinhole camera sees was reported as an empty mask."""
+    from drsplat.cameras import Camera
+    from drsplat.eval.datasets import AnnotatedView
+    from drsplat.eval.lerf import annotation_on_pinhole, warn_empty_ground_truth
+
+    cam = Camera(R=np.eye(3), t=np.zeros(3), fx=100.0, fy=100.0, cx=40.0, cy=30.0, width=80, height=60, name="v",
+                 distortion=np.array([-0.3, 0.0, 0.0, 0.0]))  # barrel: the photo's corners lie outside the pinhole view
+    corner = np.zeros((60, 80), bool)
+    corner[0, 0] = True
+    photo = AnnotatedView("v", 80, 60, {"lamp": corner, "nothing": np.zeros((60, 80), bool)})
+    moved, _ = annotation_on_pinhole(photo, cam)
+    assert not moved.masks["lamp"].any()
+    with caplog.at_level("WARNING", logger="drsplat.eval.lerf"):
+        warn_empty_ground_truth(moved, "lamp", photo)
+        warn_empty_ground_truth(moved, "nothing", photo)
+    assert "'lamp': the ground-truth mask lies wholly outside what the pinhole camera sees" in caplog.text
+    assert "'nothing': the ground-truth mask is empty" in caplog.text

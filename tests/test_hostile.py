@@ -1403,6 +1403,27 @@ def test_held_stop_signals_reach_the_handlers_that_were_there():
         signal.signal(signal.SIGTERM, before)
 
 
+def test_a_signal_while_stop_signals_are_being_held_leaves_no_handler_changed(monkeypatch):
+    """Round 96a F2: a SIGTERM between the hold's two installs left SIGINT held for good (a caller's Ctrl-C swallowed)."""
+    import drsplat.stop_signals as stop_signals
+
+    real = signal.signal
+    calls = []
+
+    def interrupted_on_the_second(signum, handler):
+        calls.append(signum)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # what the SIGTERM handler raises as the hold installs its second handler
+        return real(signum, handler)
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(stop_signals.signal, "signal", interrupted_on_the_second)
+    with pytest.raises(KeyboardInterrupt), stop_signals.stop_signals_held():
+        pass
+    monkeypatch.undo()
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
 def test_viewer_size_flags_are_usage_errors(capsys):
     from viewer.launch import build_parser
 

@@ -35,7 +35,7 @@ from drsplat.cameras import Camera
 from drsplat.defaults import DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView
 from drsplat.errors import DrsplatError
-from drsplat.eval.lerf import annotation_on_pinhole, camera_for_view, mask_iou, say_annotations_moved
+from drsplat.eval.lerf import annotation_on_pinhole, camera_for_view, mask_iou, say_annotations_moved, warn_empty_ground_truth
 from drsplat.memory import available_memory, format_size
 from drsplat.query import query_rows, relevancy_from_scores
 from drsplat.raster import NEAR, prepare_scene, rasterize_topk
@@ -325,6 +325,7 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
             missing.append(view.name)
             continue
         skipped += [(view.name, c) for c in view.skipped]
+        photo = view
         view, seen = annotation_on_pinhole(view, cam)
         names = [c for c in view.masks if c in queries]
         unqueried |= {c for c in view.masks if c not in queries}
@@ -341,8 +342,7 @@ def langsplat_report(scene, field, cameras: list[Camera], views: list[AnnotatedV
         for q, category in enumerate(names):
             gt = view.masks[category]
             if not gt.any():
-                log.warning("%s: view %s, category %r: the ground-truth mask is empty; left out of the means",
-                            view.path or "annotation", view.name, category)
+                warn_empty_ground_truth(view, category, photo)
                 skipped.append((view.name, category))
                 continue
             relevant = relevancy[q] if seen is None or not seen.any() else np.where(seen, relevancy[q], relevancy[q][seen].min())  # no peak off the photo

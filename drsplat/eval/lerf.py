@@ -117,19 +117,35 @@ def annotation_on_pinhole(view: AnnotatedView, cam: Camera) -> tuple[AnnotatedVi
     masks = {c: np.asarray(m, bool)[iv, iu] & seen for c, m in view.masks.items()}
     boxes = {}
     for category, rows in view.boxes.items():
-        moved = [box for box in (_box_on_pinhole(row, iu, iv, seen) for row in np.asarray(rows, np.float64).reshape(-1, 4)) if box is not None]
+        moved = [box for box in (_box_on_pinhole(row, src_u, src_v, iu, iv, seen) for row in np.asarray(rows, np.float64).reshape(-1, 4))
+                 if box is not None]
         if moved:
             boxes[category] = np.stack(moved)
     return dataclasses.replace(view, masks=masks, boxes=boxes), seen
 
 
-def _box_on_pinhole(box: np.ndarray, iu: np.ndarray, iv: np.ndarray, seen: np.ndarray) -> np.ndarray | None:
+def _box_on_pinhole(box: np.ndarray, src_u: np.ndarray, src_v: np.ndarray, iu: np.ndarray, iv: np.ndarray,
+                    seen: np.ndarray) -> np.ndarray | None:
     """[4] (x1, y1, x2, y2): the bounding box of the pinhole pixels whose photo pixel (iu, iv) [H, W] lies in `box` (a
-    photo box, bounds included, either corner order, as `peak_in_boxes` reads it); None when none does."""
+    photo box, bounds included, either corner order, as `peak_in_boxes` reads it); a box too small for any (a lens that
+    spreads the photo's pixels: round 96a F7) is the pinhole pixel whose source (src_u, src_v) lies nearest its centre;
+    None when the box lies outside what the pinhole camera sees."""
     x1, y1, x2, y2 = box
     inside = seen & (iu >= min(x1, x2)) & (iu <= max(x1, x2)) & (iv >= min(y1, y2)) & (iv <= max(y1, y2))
     ys, xs = np.nonzero(inside)
-    return np.array([xs.min(), ys.min(), xs.max(), ys.max()], np.float64) if xs.size else None
+    if xs.size:
+        return np.array([xs.min(), ys.min(), xs.max(), ys.max()], np.float64)
+    gap = np.hypot(src_u - 0.5 * (x1 + x2), src_v - 0.5 * (y1 + y2))
+    y, x = np.unravel_index(np.argmin(gap), gap.shape)
+    return np.array([x, y, x, y], np.float64) if gap[y, x] <= 0.5 * max(abs(x2 - x1), abs(y2 - y1)) + 1.0 else None
+
+
+def warn_empty_ground_truth(view: AnnotatedView, category: str, photo: AnnotatedView) -> None:
+    """The warning for a (view, category) pair left out for an empty ground-truth mask; `photo`: the view as drawn,
+    before `annotation_on_pinhole` (a mask the lens moved wholly off the pinhole view was called empty: round 96a F8)."""
+    why = ("lies wholly outside what the pinhole camera sees (the lens moves it off the view)" if photo.masks[category].any()
+           else "is empty")
+    log.warning("%s: view %s, category %r: the ground-truth mask %s; left out of the means", view.path or "annotation", view.name, category, why)
 
 
 def say_annotations_moved(cameras: list[Camera]) -> None:
@@ -187,6 +203,7 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
             done += len(view.masks)
             continue
         skipped += [(view.name, c) for c in view.skipped]
+        photo = view
         view, seen = annotation_on_pinhole(view, cam)
         for category, gt in view.masks.items():
             if cancel is not None:
@@ -196,8 +213,7 @@ def lerf_2d_report(scene, cameras: list[Camera], views: list[AnnotatedView], sel
                 unselected.add(category)
                 continue
             if not gt.any():
-                log.warning("%s: view %s, category %r: the ground-truth mask is empty; left out of the means",
-                            view.path or "annotation", view.name, category)
+                warn_empty_ground_truth(view, category, photo)
                 skipped.append((view.name, category))
                 done += 1
                 continue

@@ -519,46 +519,65 @@ def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolera
         raise ValueError(f"{int(bad.sum())} Gaussians have no counterpart in the original scene (e.g. #{int(np.flatnonzero(bad)[0])})")
     idx = idx.astype(np.int64)
     radius = tolerance * max(extent, 1e-12)
-    if len(np.unique(idx)) != len(idx):
-        _pair_in_row_order(tree, sub, idx, radius, _rest_keys(original_rest, subset_rest))
-    elif original_rest is not None and subset_rest is not None:
-        _pair_in_row_order(tree, sub, idx, radius, _rest_keys(original_rest, subset_rest), np.flatnonzero(_shares_a_position(tree, sub, idx, radius)))
+    rest = _rest_keys(original_rest, subset_rest)
+    repair = _rows_to_repair(tree, sub, idx, radius, rest)
+    if repair.size:
+        _pair_in_row_order(tree, sub, idx, radius, rest, repair)
     return idx
 
 
-def _rest_keys(original_rest: np.ndarray | None, subset_rest: np.ndarray | None) -> tuple[list[bytes], list[bytes]] | None:
-    """Each row's rest (`match_gaussians`) as bytes, compared bit for bit; None when either is not given."""
+def _rows_to_repair(tree, sub: np.ndarray, idx: np.ndarray, radius: float, rest: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+    """The rows of `idx` [M] (each row's nearest original) that `_pair_in_row_order` pairs again: those whose nearest
+    original another row has too, and (with `rest`) those whose nearest original stores another rest while an original
+    within `radius` of the row stores its own (a pruned clone's place taken, round 95c F1). A row whose nearest original
+    is its own, or that no original nearby matches (a .spz copy's rounded rest), keeps it (round 96a F4: re-pairing
+    every row near another original swapped two drifted clones alike in everything)."""
+    values, counts = np.unique(idx, return_counts=True)
+    repair = np.isin(idx, values[counts > 1])
+    if rest is not None:
+        originals, copies = rest
+        differs = ~repair & (originals[idx].view(np.uint32) != copies.view(np.uint32)).any(axis=1)
+        rows = np.flatnonzero(differs)
+        rows = rows[_shares_a_position(tree, idx[rows], radius)]
+        for row, near in zip(rows.tolist(), tree.query_ball_point(sub[rows], r=radius) if rows.size else []):
+            key = copies[row].tobytes()
+            repair[row] = any(originals[c].tobytes() == key for c in near)
+    return np.flatnonzero(repair)
+
+
+def _rest_keys(original_rest: np.ndarray | None, subset_rest: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """The rests (`match_gaussians`) as float32 rows, whose bytes `_pair_alike` compares (those of the co-located
+    groups only: a key for each of 5M rows took seconds); None when either is not given."""
     if original_rest is None or subset_rest is None:
         return None
-    as_bytes = lambda rest: [row.tobytes() for row in np.ascontiguousarray(rest, np.float32)]  # noqa: E731
-    return as_bytes(original_rest), as_bytes(subset_rest)
+    return np.ascontiguousarray(original_rest, np.float32), np.ascontiguousarray(subset_rest, np.float32)
 
 
-def _shares_a_position(tree, sub: np.ndarray, idx: np.ndarray, radius: float) -> np.ndarray:
-    """[M] bool: the rows whose nearest original has another original within `radius` (a co-located group, which row
-    order alone could pair wrongly when one of its Gaussians was pruned)."""
-    others = tree.query(tree.data[idx], k=2)[0][:, 1] if tree.n > 1 else np.full(len(idx), np.inf)
-    return others <= radius
+def _shares_a_position(tree, idx: np.ndarray, radius: float) -> np.ndarray:
+    """[R] bool: whether the originals `idx` [R] have another original within `radius`."""
+    if tree.n < 2 or idx.size == 0:
+        return np.zeros(idx.size, bool)
+    return tree.query(tree.data[idx], k=2)[0][:, 1] <= radius
 
 
-def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, rest_keys: tuple[list[bytes], list[bytes]] | None = None,
-                       shared: np.ndarray | None = None) -> None:
-    """Re-pair, in place, the rows of `idx` [M] whose nearest original another row has too (or the rows `shared`). Rows
-    with the same originals within `radius` (the copies of one position) take first the originals whose rest is theirs
-    (`rest_keys`: originals', copy's), then the others in row order, nearest first, then in row order (round 60a: the
-    first in row order took a distinct Gaussian 3e-5 away before the exact copy); each group in O(K log K) (round 60c:
-    row by row, 10,000 copies of one position took 92 s). When a group finds too few free originals, a maximum
-    bipartite matching of every shared row decides (row by row, one valid pairing was refused); ValueError when even
-    that leaves a row without one."""
-    if shared is None:
-        values, counts = np.unique(idx, return_counts=True)
-        shared = np.flatnonzero(np.isin(idx, values[counts > 1]))
-    fixed = set(np.delete(idx, shared).tolist())  # the originals of the rows no other row shares
+def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, rest_keys: tuple[np.ndarray, np.ndarray] | None,
+                       shared: np.ndarray) -> None:
+    """Re-pair, in place, the rows `shared` of `idx` [M] (`_rows_to_repair`). Rows with the same originals within
+    `radius` (the copies of one position) take first the originals whose rest is theirs (`rest_keys`: originals',
+    copy's), then the others in row order, nearest first, then in row order (round 60a: the first in row order took a
+    distinct Gaussian 3e-5 away before the exact copy); each group in O(K log K), its ball found once for each distinct
+    position (round 60c: row by row, 10,000 copies of one position took 92 s; round 96a F5: a ball and its sort for
+    each of K copies, quadratic). When a group finds too few free originals, a maximum bipartite matching of every
+    shared row decides (row by row, one valid pairing was refused); ValueError when even that leaves a row without one."""
+    fixed = set(np.delete(idx, shared).tolist())  # the originals of the rows not paired again
     taken = set(fixed)
-    nears = tree.query_ball_point(sub[shared], r=radius)
+    positions, where = np.unique(sub[shared], axis=0, return_inverse=True)
+    balls = tree.query_ball_point(positions, r=radius)
+    nears = [balls[j] for j in where.reshape(-1).tolist()]  # a row's ball: the list of its position's, not a copy
     groups: dict[tuple[int, ...], list[int]] = {}
-    for k, near in enumerate(nears):
-        groups.setdefault(tuple(sorted(near)), []).append(k)
+    keys = [tuple(sorted(ball)) for ball in balls]
+    for k, j in enumerate(where.reshape(-1).tolist()):
+        groups.setdefault(keys[j], []).append(k)
     for near, members in groups.items():
         first = sub[shared[members[0]]]
         ranked = sorted((c for c in near if c not in taken), key=lambda c: (float(np.square(tree.data[c] - first).sum()), c))
@@ -572,7 +591,7 @@ def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, re
 
 
 def _pair_alike(members: list[int], ranked: list[int], shared: np.ndarray, idx: np.ndarray,
-                rest_keys: tuple[list[bytes], list[bytes]] | None) -> tuple[list[int], list[int]]:
+                rest_keys: tuple[np.ndarray, np.ndarray] | None) -> tuple[list[int], list[int]]:
     """Pair, in place in `idx`, each of a co-located group's `members` with the first of the free originals `ranked` whose
     rest is the same bits; returns the members and the originals left to pair in row order."""
     if rest_keys is None:
@@ -580,11 +599,11 @@ def _pair_alike(members: list[int], ranked: list[int], shared: np.ndarray, idx: 
     originals, copies = rest_keys
     alike: dict[bytes, list[int]] = {}
     for c in reversed(ranked):  # each list nearest last, so pop() takes the nearest (O(K) a group: 3,000 copies of a position)
-        alike.setdefault(originals[c], []).append(c)
+        alike.setdefault(originals[c].tobytes(), []).append(c)
     used = set()
     left = []
     for k in members:
-        same = alike.get(copies[shared[k]])
+        same = alike.get(copies[shared[k]].tobytes())
         if same:
             idx[shared[k]] = same.pop()
             used.add(int(idx[shared[k]]))
