@@ -324,6 +324,10 @@ def _bad_checkpoint(tmp_path: Path, kind: str) -> Path:
         torch.save({"model": _Opaque()}, path)
     elif kind == "wrong_tensors":
         torch.save({"state_dict": {"x": torch.zeros(2)}}, path)
+    elif kind == "a_list":
+        torch.save([1, 2, 3], path)
+    elif kind == "no_tensors":
+        torch.save({"epoch": 3}, path)
     return path
 
 
@@ -333,6 +337,8 @@ def _bad_checkpoint(tmp_path: Path, kind: str) -> Path:
     ("plain_pickle", "a pickle, but not of a checkpoint torch can read"),
     ("python_objects", "holds Python objects besides tensors"),
     ("wrong_tensors", "do not fit this architecture"),
+    ("a_list", "torch reads it, but it holds list, not a state dict of weights"),  # round 96b F2: "not a readable torch.save checkpoint"
+    ("no_tensors", "do not fit this architecture"),
 ])
 def test_a_bad_clip_checkpoint_is_one_short_error_saying_what_the_file_is(tmp_path, tiny_clip, kind, words):
     """torch's messages ran into the error line: a paragraph on weights_only for any legacy-format

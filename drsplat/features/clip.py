@@ -56,7 +56,26 @@ def checkpoint_problem(path: Path, exc: BaseException) -> str:
         return "it is neither a torch.save checkpoint (a zip archive) nor a pickle"
     if "unsupported global" in text.lower():  # "Unsupported global: ..." and "unsupported GLOBAL posix.system ... is blocked"
         return "it holds Python objects besides tensors, which are not unpickled (torch.load weights_only)"
+    held = _what_it_holds(path) if is_zip else None
+    if held is not None:  # round 96b F2: readable files (a list, an fp16 state dict of another architecture) were called unreadable
+        return held
     return "it is a zip archive, but not a readable torch.save checkpoint" if is_zip else "it is a pickle, but not of a checkpoint torch can read"
+
+
+def _what_it_holds(path: Path) -> str | None:
+    """Why a torch.save file that torch reads (tensors only, memory-mapped) is no checkpoint of this model: it holds no
+    state dict, or one whose tensors do not fit it; None when torch cannot read it either."""
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception:  # noqa: BLE001 - any failure: the caller's "not readable"
+        return None
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]
+    if not isinstance(state, dict) or not any(isinstance(v, torch.Tensor) for v in state.values()):
+        return f"torch reads it, but it holds {type(state).__name__ if not isinstance(state, dict) else 'a dict of no tensors'}, not a state dict of weights"
+    return "its weights do not fit this architecture (another model's, or tensors of another type)"
 
 
 def unsupported_model_name(model: str) -> str | None:
