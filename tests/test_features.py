@@ -1025,3 +1025,31 @@ def test_a_manifests_clip_weights_that_is_not_a_digest_is_said_not_dropped(tmp_p
         featurefiles.read_manifest(tmp_path)
     assert f"{path}: field 'clip_weights' is {json.dumps(value)}, not the 'size:sha1' digest" in caplog.text
     assert "queries check the text encoder by its model name alone" in caplog.text
+
+
+def test_images_without_a_mask_are_said_to_be_unreadable_by_langsplat():
+    """Round 96b F1: an image that gave no mask is written as a feature file of no row beside a map of -1, which
+    LangSplat's training cannot index (IndexError); the run said only that registration gets nothing from it."""
+    from drsplat.features.extract import FeatureReport
+
+    report = FeatureReport()
+    report.without_masks.append("frame_0001")
+    (note,) = report.notes()
+    assert "1 image(s) gave no mask at all (frame_0001)" in note and "which LangSplat's own training cannot read" in note
+
+
+def test_a_resumed_run_still_names_the_finished_images_that_gave_no_mask(tmp_path):
+    """Round 96b F3: after Ctrl-C and a resume, the images finished before the interrupt were never named as mask-less."""
+    from drsplat.cameras import Camera
+    from drsplat.features import format as featurefiles
+    from drsplat.features.extract import FeatureReport, todo_cameras
+
+    out = tmp_path / "features"
+    out.mkdir()
+    cams = [Camera(R=np.eye(3), t=np.zeros(3), fx=10.0, fy=10.0, cx=4.0, cy=3.0, width=8, height=6, name=n) for n in ("a", "b")]
+    featurefiles.write_features(out, "a", np.full((4, 6, 8), -1, np.int32), np.zeros((0, 512), np.float16))
+    featurefiles.write_features(out, "b", np.zeros((4, 6, 8), np.int32), np.ones((1, 512), np.float16))
+    report = FeatureReport()
+    assert todo_cameras(cams, out, report) == [] and report.skipped == ["a", "b"]
+    assert report.without_masks == ["a"] and "1 image(s) gave no mask at all (a)" in report.notes()[0]
+

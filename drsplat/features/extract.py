@@ -30,7 +30,7 @@ from drsplat.features.modelid import (
     manifest_model_id,
     weights_digest,
 )
-from drsplat.utils import CancelToken, file_stamp, odd_entry_kind, progress
+from drsplat.utils import CancelToken, file_stamp, npy_header, odd_entry_kind, progress
 import drsplat
 from drsplat.cameras import detect_dataset, image_folder, load_cameras, load_image_sized, unobserved_pixels
 from drsplat.features.clip import OPENAI_MEAN, OPENAI_STD, ClipEncoder, use_clip_config
@@ -82,7 +82,9 @@ class FeatureReport:
         out = []
         if self.without_masks:
             out.append(f"{len(self.without_masks)} image(s) gave no mask at all ({listed(self.without_masks)}): registration gets nothing "
-                       "from them (too few pixels at this --resolution / --max-height, or a blank image?)")
+                       "from them (too few pixels at this --resolution / --max-height, or a blank image?); their feature files hold no "
+                       "row, which LangSplat's own training cannot read (it indexes a row for the -1 of every pixel): leave them out "
+                       "of a LangSplat run")  # round 96b F1
         if self.flat:
             out.append(f"{len(self.flat)} image(s) are one flat colour ({listed(self.flat)}): their masks and embeddings describe "
                        "nothing of the scene (a blank export, or a transparent image whose colour channels are empty?)")
@@ -554,6 +556,8 @@ def todo_cameras(cameras: list, out: Path, report: FeatureReport, stamps: ImageS
                             out, stem)
             else:
                 report.skipped.append(stem)
+                if npy_header(featurefiles.feat_path(out, stem))[0][0] == 0:  # said again on a resume (round 96b F3)
+                    report.without_masks.append(stem)
                 now = pair_stamp(cam) if recorded is None and stamps is not None else None
                 if now is not None:
                     stamps.known[stem] = now
