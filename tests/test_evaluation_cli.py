@@ -981,3 +981,25 @@ def test_original_scene_matching_tells_a_pruned_clone_from_the_kept_one(register
                     comments=reg_ply.comments).write(str(tmp_path / "reg.ply"))  # the first copy pruned, the clone kept
     _, _, index = load_eval_scene(argparse.Namespace(registered=tmp_path / "reg.ply", original=tmp_path / "scene.ply"))
     assert index[-1] == len(scene_rows) and first not in index.tolist()
+
+
+def test_an_eval_interrupted_after_its_json_is_written_names_it(registered, tmp_path, monkeypatch, capsys):
+    """Round 96a F6: `eval iou --json` (and `pq train`) interrupted after writing said only "interrupted; no partial
+    output file was left": they wrote outside `outputs_together`, which records what a command settled."""
+    import drsplat.commands.eval as eval_cmd
+
+    r = registered
+    js = tmp_path / "e.json"
+    real = eval_cmd.log.info
+
+    def info(message, *args):
+        real(message, *args)
+        if message == "wrote %s":
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(eval_cmd.log, "info", info)
+    argv = ["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), "--original", str(r["ds"] / "scene.ply"),
+            *query_args(r), "--json", str(js)]
+    assert main(argv) == 1
+    assert f"ERROR: interrupted after writing {js} (complete)" in capsys.readouterr().err and json.loads(js.read_text())["reports"]
+

@@ -363,7 +363,7 @@ def write_json(path: Path | None, doc: dict) -> None:
         return
     from drsplat.utils import atomic_path
 
-    with atomic_path(path) as tmp:
+    with outputs_together([path]), atomic_path(path) as tmp:  # settled: an interrupt after it names it (round 96a F6)
         tmp.write_text(json_text(doc) + "\n")
     log.info("wrote %s", shown_path(path))
 

@@ -17,7 +17,7 @@ from drsplat.features.format import FEAT_SUFFIX, embedding_norms
 from drsplat.lang.codebook import PQ_KSUB, SCENE_PQ_M
 from drsplat.lang.plyformat import CODEBOOK_SUFFIX, codebook_path_for
 from drsplat.scene import starts_as_ply
-from drsplat.utils import load_npy
+from drsplat.utils import load_npy, outputs_together
 
 log = logging.getLogger(__name__)
 
@@ -208,7 +208,8 @@ def run_train(args: argparse.Namespace) -> int:
                          f"a codebook needs at least {PQ_KSUB} (ideally 10,000+)")
     log.info("training PQ M=%d x 8 bits on %d embeddings of dimension %d", args.m, x.shape[0], x.shape[1])
     book = train_codebook(x, m=args.m, seed=args.seed, show_progress=sys.stderr.isatty())  # a minute or more: shown (round 68a F13)
-    book.save(args.out)
+    with outputs_together([args.out]):  # settled: an interrupt after it names it (round 96a F6)
+        book.save(args.out)
     print(f"wrote {shown_path(args.out)}: pq d={book.dim} M={book.m} x 8 bits, {book.m} bytes per Gaussian, trained on {x.shape[0]} embeddings")
     return 0
 
