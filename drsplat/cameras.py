@@ -1204,7 +1204,7 @@ def camera_model_problem(camera_model: object) -> str:
     spelt = next((name for name in TRANSFORMS_CAMERA_MODELS if isinstance(camera_model, str) and camera_model.strip().upper() == name), None)
     if spelt is not None:
         return f'has camera_model {shown}: write it "{spelt}", as nerfstudio reads these names (upper case)'
-    hint = ("no pinhole camera shows a whole panorama: export perspective views of it and list those" if camera_model == "EQUIRECTANGULAR"
+    hint = ("no pinhole camera shows a whole panorama: export perspective views of it and list those" if isinstance(camera_model, str) and camera_model.strip().upper() == "EQUIRECTANGULAR"
             else TRANSFORMS_UNDISTORT_HINT)
     return f"has camera_model {shown}, which drsplat does not read; it reads OPENCV (k1, k2, p1, p2), PINHOLE and SIMPLE_PINHOLE; {hint}"
 
@@ -1535,7 +1535,8 @@ def detect_dataset(source: str | Path) -> tuple[str, Path]:
         if found is not None:
             return reader.kind, found
     if src.is_file():
-        model_file = src.suffix in (".bin", ".txt") and src.stem in ("cameras", "images", "points3D")
+        model_file = (src.suffix in (".bin", ".txt") and src.stem in ("cameras", "images", "points3D", "frames", "rigs")
+                      and any((src.parent / f"cameras{suffix}").is_file() for suffix in (".bin", ".txt")))  # round 96a F10: its folder's
         raise InputError(src, "is not a dataset folder, transforms.json or cameras.json" + (
             f"; it is a file of a COLMAP model: give the dataset folder (the one holding images/ and sparse/), or {src.parent}"
             if model_file else ""))  # round 95b F6

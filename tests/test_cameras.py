@@ -145,6 +145,7 @@ def test_undistortion_moves_a_dot_to_its_pinhole_position(tmp_path):
     ("OPENCV_FISHEYE", 'has camera_model "OPENCV_FISHEYE", which drsplat does not read; it reads OPENCV (k1, k2, p1, p2), PINHOLE and '
                        "SIMPLE_PINHOLE; 3DGS is trained on undistorted images: undistort them with the tool that made this file"),
     ("EQUIRECTANGULAR", "no pinhole camera shows a whole panorama"),
+    ("equirectangular", "no pinhole camera shows a whole panorama"),
     (7, "has camera_model 7, which drsplat does not read"),
 ])
 def test_a_transforms_camera_model_refused_is_named_with_a_way_out_that_fits_it(tmp_path, model, words):
@@ -1684,6 +1685,11 @@ def test_a_colmap_models_windows_names_blanks_and_files_are_named_as_the_cause(t
         load_cameras(blank / "transforms.json")
     with pytest.raises(InputError, match=r"it is a file of a COLMAP model: give the dataset folder \(the one holding images/ and sparse/\), or "):
         load_cameras(windows / "sparse" / "0" / "cameras.txt")
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "images.txt").write_text("my holiday photos\n")  # round 96a F10: no model beside it
+    with pytest.raises(InputError) as exc:
+        load_cameras(tmp_path / "notes" / "images.txt")
+    assert "COLMAP" not in str(exc.value)
 
 
 def test_a_nerfstudio_run_oriented_by_pca_is_warned_about(tmp_path, caplog):
