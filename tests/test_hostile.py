@@ -1350,13 +1350,17 @@ def test_a_signal_in_the_outputs_clean_up_leaves_no_hidden_copy(tmp_path, monkey
             signal.raise_signal(signal.SIGINT)
             real.reset(token)
 
-    with pytest.raises(KeyboardInterrupt), outputs_together([out]):
-        save_npy_atomic(out, np.ones(3))
-        monkeypatch.setattr(ut, "_WRITTEN", SignalOnReset())
-    monkeypatch.undo()
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # a pytest-xdist worker ignores SIGINT
+    try:
+        with pytest.raises(KeyboardInterrupt), outputs_together([out]):
+            save_npy_atomic(out, np.ones(3))
+            monkeypatch.setattr(ut, "_WRITTEN", SignalOnReset())
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
     np.testing.assert_array_equal(np.load(out), np.ones(3))  # the block had ended: the new output stands
     assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
 def test_a_signal_after_the_outputs_are_written_says_they_were(tmp_path, monkeypatch, capsys):
@@ -1391,6 +1395,7 @@ def test_held_stop_signals_reach_the_handlers_that_were_there():
 
     heard = []
     before = signal.signal(signal.SIGTERM, lambda signum, _frame: heard.append(signum))
+    interrupt = signal.signal(signal.SIGINT, signal.default_int_handler)  # a pytest-xdist worker ignores SIGINT
     try:
         with stop_signals_held():
             signal.raise_signal(signal.SIGTERM)
@@ -1401,6 +1406,7 @@ def test_held_stop_signals_reach_the_handlers_that_were_there():
             signal.raise_signal(signal.SIGINT)
     finally:
         signal.signal(signal.SIGTERM, before)
+        signal.signal(signal.SIGINT, interrupt)
 
 
 def test_a_signal_while_stop_signals_are_being_held_leaves_no_handler_changed(monkeypatch):
