@@ -1618,7 +1618,9 @@ def _missing_hint(kind: str, found: Path, missing: str) -> str:
             names = next((found / f for f in ("images.bin", "images.txt") if (found / f).is_file()), found) if kind == "colmap" else found
             return hint + f"; the name holds Windows backslashes ('\\'), which are no folder separators here: {slashed} is there (write '/' in {names.name})"
     trimmed = missing.strip()
-    if trimmed != missing and trimmed and (image_folder(kind, found) / trimmed).exists():  # an invisible blank at a line's end (round 95b F5)
+    folder = image_folder(kind, found)
+    if trimmed != missing and trimmed and any((folder / (trimmed + suffix)).exists() for suffix in ("", *IMAGE_SUFFIXES)):
+        # an invisible blank at a line's end (round 95b F5), in a name without its suffix too (3DGS's cameras.json: round 97a F6)
         return f"e.g. {json.dumps(str(wanted))}; the name {json.dumps(missing)} has blanks at its ends, and {trimmed} is there: remove them"
     if not wanted.parent.is_dir():
         return hint + f"; the folder {wanted.parent} does not exist" + _downscaled_folders_hint(wanted.parent)

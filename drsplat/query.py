@@ -394,6 +394,12 @@ def select(scores: np.ndarray, threshold: float, assigned: np.ndarray | None = N
     return picked if assigned is None else picked & assigned
 
 
+def threshold_digits(threshold: float, best: float) -> int:
+    """The decimals a message shows `threshold` and the best score with: 4, or more where 4 show two different values
+    alike ("no Gaussian scores >= 0.3763 (the best score is 0.3763)": round 78b F1), at most 17."""
+    return next(d for d in range(4, 18) if f"{threshold:.{d}f}" != f"{best:.{d}f}" or d == 17)
+
+
 def otsu_scores(scores: np.ndarray) -> np.ndarray:
     """The scores Otsu splits: the finite, nonzero ones, float64. An unassigned Gaussian's cosine and relevancy are 0
     and drop out (`drsplat query` and the viewer pass the assigned rows only all the same)."""

@@ -368,6 +368,14 @@ def sh_in_range(scene: GaussianScene) -> np.ndarray:
     return ok
 
 
+def in_render_range(scene: GaussianScene) -> np.ndarray:
+    """[N] bool: the Gaussians whose SH coefficients pass `sh_in_range` and whose mean is finite and within
+    MAX_COORDINATE on every axis; `prepare_scene` renders no other, nor the viewer's shader (its `splat_geometry`)."""
+    ok = sh_in_range(scene)
+    bounded_rows_kernel(np.ascontiguousarray(scene.means), MAX_COORDINATE, False, ok)
+    return ok
+
+
 SCENE_ARRAYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
 
@@ -410,13 +418,12 @@ def prepare_scene(scene: GaussianScene | PreparedScene, with_sh: bool = True, wa
         return scene
     scene = widened_scene(scene)
     n = scene.num_gaussians
-    finite = sh_in_range(scene)
+    finite = in_render_range(scene)
     everything = float(np.finfo(np.float64).max)
     # an infinite opacity logit is an opacity of 0 or 1, as the loader reads it (clamped to ±MAX_OPACITY_LOGIT): a scene
     # given in memory renders it as one loaded from a file does (round 89d F2: +inf was dropped here, the most opaque value)
     logits = np.clip(scene.opacity_logits, -MAX_OPACITY_LOGIT, MAX_OPACITY_LOGIT)
-    for rows, limit in ((scene.means, MAX_COORDINATE), (scene.quats, everything), (scene.log_scales, everything),
-                        (logits.reshape(n, 1), everything)):
+    for rows, limit in ((scene.quats, everything), (scene.log_scales, everything), (logits.reshape(n, 1), everything)):
         bounded_rows_kernel(np.ascontiguousarray(rows), limit, False, finite)
     cov = scene.covariances()
     bounded_rows_kernel(cov.reshape(n, 9), everything, False, finite)

@@ -53,7 +53,22 @@ def stop_signals_held() -> Iterator[None]:
             signal.signal(signum, lambda signum, _frame: held.append(signum))
         yield
     finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+        pending = _put_back(previous)
         for signum in dict.fromkeys(held):
             signal.raise_signal(signum)
+        if pending is not None:
+            raise pending
+
+
+def _put_back(handlers: dict) -> KeyboardInterrupt | None:
+    """Set every handler of `handlers` (signal -> handler) again, each to the end, though the first one put back raises as
+    the next is (round 97a F2: a Ctrl-C then left SIGTERM held for good); returns such an interrupt for the caller."""
+    pending = None
+    for signum, handler in handlers.items():
+        while True:
+            try:
+                signal.signal(signum, handler)
+                break
+            except KeyboardInterrupt as exc:  # setting it again is harmless: the loop ends once one call is not cut
+                pending = exc
+    return pending

@@ -400,8 +400,13 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     an interrupted `segment` the earlier LABELS.npy. Where no link can be made (another file system
     type), a replaced file is removed as before. Each file is still written atomically on its own; a
     device or FIFO output is left as it is."""
+    covered = _COVERED.get()
     given = [Path(p) for p in paths if p is not None]
     targets = [output_target(p) for p in given]  # a link's target holds what is written: the link (the user's) stays
+    # an enclosing block keeps and puts back its own outputs: a second kept copy of one (the same name) lost the earlier
+    # file when both undid it (round 97a F1: `eval scannet`'s --json, in its own block inside --save-labels')
+    given, targets = [g for g, t in zip(given, targets) if _written_key(t) not in covered], [t for t in targets if _written_key(t) not in covered]
+    covering = _COVERED.set(covered | {_written_key(t) for t in targets})
     before = [_file_identity(t) for t in targets]
     kept = [_kept_copy(t) if then is not None else None for t, then in zip(targets, before)]
     settled = [copy is None for copy in kept]  # a kept copy is let go only once its file needs it no more
@@ -434,6 +439,7 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
                 settled = [True] * len(kept)
                 _note_settled(given, targets, written)
             _WRITTEN.reset(token)
+            _COVERED.reset(covering)
             outer = _WRITTEN.get()
             if outer is not None:
                 outer.update(written)
@@ -445,6 +451,7 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
 
 _WRITTEN: contextvars.ContextVar[dict | None] = contextvars.ContextVar("drsplat_written_outputs", default=None)
 _SETTLED: contextvars.ContextVar[dict | None] = contextvars.ContextVar("drsplat_settled_outputs", default=None)
+_COVERED: contextvars.ContextVar[frozenset] = contextvars.ContextVar("drsplat_covered_outputs", default=frozenset())
 
 
 def _note_settled(given: list[Path], targets: list[Path], written: dict[str, tuple[int, int] | None]) -> None:

@@ -1683,6 +1683,11 @@ def test_a_colmap_models_windows_names_blanks_and_files_are_named_as_the_cause(t
     (blank / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": [{"file_path": "images/a.png ", "transform_matrix": c2w.tolist()}]}))
     with pytest.raises(InputError, match=r'the name "images/a.png " has blanks at its ends, and images/a.png is there: remove them'):
         load_cameras(blank / "transforms.json")
+    (blank / "transforms.json").unlink()  # round 97a F6: a name without its suffix, as 3DGS's cameras.json gives it
+    (blank / "cameras.json").write_text(json.dumps([{"id": 0, "img_name": "a ", "width": 64, "height": 48, "position": [0, 0, -4],
+                                                     "rotation": np.eye(3).tolist(), "fx": 50.0, "fy": 50.0}]))
+    with pytest.raises(InputError, match=r'the name "a " has blanks at its ends'):
+        load_cameras(blank / "cameras.json")
     with pytest.raises(InputError, match=r"it is a file of a COLMAP model: give the dataset folder \(the one holding images/ and sparse/\), or "):
         load_cameras(windows / "sparse" / "0" / "cameras.txt")
     (tmp_path / "notes").mkdir()

@@ -338,7 +338,7 @@ def _bad_checkpoint(tmp_path: Path, kind: str) -> Path:
     ("python_objects", "holds Python objects besides tensors"),
     ("wrong_tensors", "do not fit this architecture"),
     ("a_list", "torch reads it, but it holds list, not a state dict of weights"),  # round 96b F2: "not a readable torch.save checkpoint"
-    ("no_tensors", "do not fit this architecture"),
+    ("no_tensors", "torch reads it, but it holds a dict of no tensors, not a state dict of weights"),  # round 97a F7
 ])
 def test_a_bad_clip_checkpoint_is_one_short_error_saying_what_the_file_is(tmp_path, tiny_clip, kind, words):
     """torch's messages ran into the error line: a paragraph on weights_only for any legacy-format

@@ -529,6 +529,10 @@ def test_an_annotation_of_a_distorted_photo_is_moved_onto_the_pinhole_render():
     tiny = AnnotatedView("v", w, h, {"ball": photo}, boxes={"ball": np.array([[px, py, px, py]], np.float64)})
     box = annotation_on_pinhole(tiny, cam)[0].boxes["ball"][0]
     assert np.hypot(su[int(box[1]), int(box[0])] - px, sv[int(box[1]), int(box[0])] - py) <= 1.5
+    edge = AnnotatedView("v", w, h, {"ball": photo}, boxes={"ball": np.array([[w - 4, h - 1, w - 4, h - 1]], np.float64)})
+    moved, seen = annotation_on_pinhole(edge, cam)  # round 97a F3: the box's pixel must be one the photo saw
+    x, y = moved.boxes["ball"][0, :2].astype(int)
+    assert seen[y, x]
 
 
 def test_a_mask_the_lens_moves_off_the_view_is_not_called_empty(caplog):

@@ -1332,6 +1332,30 @@ def test_outputs_together_leaves_another_writers_file_and_keeps_what_a_second_st
     assert kept, "the earlier files not put back are kept, not deleted"
 
 
+def test_an_output_in_two_nested_blocks_is_put_back_by_the_outer_one(tmp_path):
+    """Round 97a F1: `eval scannet` writes --json in its own `outputs_together` inside the one of --save-labels and
+    --json; both kept a copy of the earlier JSON under one name, so an interrupt after the JSON put the labels back and
+    lost the earlier JSON."""
+    from drsplat.utils import outputs_together, save_npy_atomic, settled_outputs
+
+    labels, doc = tmp_path / "labels.npy", tmp_path / "e.npy"
+    np.save(labels, np.zeros(3))
+    np.save(doc, np.zeros(2))
+    with settled_outputs() as written, pytest.raises(KeyboardInterrupt), outputs_together([labels, doc]):
+        save_npy_atomic(labels, np.ones(3))
+        with outputs_together([doc]):
+            save_npy_atomic(doc, np.ones(2))
+        raise KeyboardInterrupt
+    np.testing.assert_array_equal(np.load(labels), np.zeros(3))
+    np.testing.assert_array_equal(np.load(doc), np.zeros(2))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["e.npy", "labels.npy"] and written() == []
+    with settled_outputs() as written, outputs_together([labels, doc]):
+        save_npy_atomic(labels, np.ones(3))
+        with outputs_together([doc]):
+            save_npy_atomic(doc, np.ones(2))
+    assert sorted(written()) == sorted([str(labels), str(doc)])
+
+
 def test_a_signal_in_the_outputs_clean_up_leaves_no_hidden_copy(tmp_path, monkeypatch):
     """Round 94a F2: Ctrl-C as `outputs_together` let go of the earlier output's hidden copy left
     `.OUT.<pid>@<host>.kept.tmp` beside it, while the command said it left nothing."""
@@ -1424,6 +1448,21 @@ def test_a_signal_while_stop_signals_are_being_held_leaves_no_handler_changed(mo
 
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     monkeypatch.setattr(stop_signals.signal, "signal", interrupted_on_the_second)
+    with pytest.raises(KeyboardInterrupt), stop_signals.stop_signals_held():
+        pass
+    monkeypatch.undo()
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    # round 97a F2: a Ctrl-C as the first handler is put back (raised by it) left the second one held for good
+    calls.clear()
+
+    def interrupted_on_the_first_put_back(signum, handler):
+        calls.append(signum)
+        result = real(signum, handler)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return result
+
+    monkeypatch.setattr(stop_signals.signal, "signal", interrupted_on_the_first_put_back)
     with pytest.raises(KeyboardInterrupt), stop_signals.stop_signals_held():
         pass
     monkeypatch.undo()

@@ -444,6 +444,11 @@ def test_an_empty_selections_export_gives_the_best_score_as_the_cli_does(state, 
     assert state.export_selection(tmp_path / "a.ply", "standard") is None
     assert f"no Gaussian scores >= 1.0000 (the best score is {best:.4f}): lower the threshold" in state.messages[-1].text
     assert "run a query" not in state.messages[-1].text and not (tmp_path / "a.ply").exists()
+    state.set_threshold(best + 1e-6)  # alike at 4 decimals: shown with as many as tell them apart (round 97a F5, as the CLI)
+    assert state.export_selection(tmp_path / "a.ply", "standard") is None
+    text = state.messages[-1].text
+    above, top = text.split("scores >= ")[1].split(" (the best score is ")
+    assert above != top.split(")")[0], text
 
 
 def test_a_non_finite_oracle_vector_is_named_by_its_label(state):

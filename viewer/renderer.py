@@ -21,8 +21,8 @@ import numpy as np
 
 from drsplat.cameras import Camera
 from drsplat.errors import DrsplatError
-from drsplat.raster import sh_in_range
-from drsplat.scene import MAX_COORDINATE, GaussianScene
+from drsplat.raster import in_render_range
+from drsplat.scene import GaussianScene
 from viewer.assets import load_shader
 from viewer.camera import scene_near_plane
 from viewer.sorting import BackgroundSorter, SortResult
@@ -91,7 +91,7 @@ def splat_geometry(scene: GaussianScene, origin: np.ndarray | None = None) -> np
                     "3DGS stores their logs?); the viewer does not draw them", lost, n)
     # what `drsplat.raster` renders not, the shader draws not either (a NaN Σ): the load says they are not rendered, and a
     # click (picked by drsplat.raster) found nothing on them (round 95a F1: a scene scaled by 1e30 drawn, never picked)
-    geometry[(np.abs(np.asarray(scene.means, np.float64)) > MAX_COORDINATE).any(axis=1) | ~sh_in_range(scene), 1:] = np.nan
+    geometry[~in_render_range(scene), 1:] = np.nan
     return geometry
 
 

@@ -31,7 +31,7 @@ from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hi
 from drsplat.features.clip import ClipEncoder, unsupported_model_name, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, clip_weights_problem, is_oracle, named_model
 from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_problem, export_scene, read_field, written_codebook_path
-from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select
+from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select, threshold_digits
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
 from drsplat.registration.checkpoint import checkpoint_path_for
@@ -774,8 +774,9 @@ class ViewerState:
             self.error("nothing is shown to export: every Gaussian is selected and hidden; raise the threshold, or leave hide selection")
             return None
         if count == 0:
+            d = threshold_digits(self.threshold, self.best_score())
             why = ("run a query and lower the threshold" if self.query is None or self.mode == "segmentation" else
-                   f"no Gaussian scores >= {self.threshold:.4f} (the best score is {self.best_score():.4f}): lower the threshold")  # round 95a F8, as the CLI says it
+                   f"no Gaussian scores >= {self.threshold:.{d}f} (the best score is {self.best_score():.{d}f}): lower the threshold")  # round 95a F8, as the CLI says it
             self.error(f"the selection is empty: {why}"
                        + (" (an export writes a query's selection; the segmentation's colours are written by drsplat segment --ply)"
                           if self.mode == "segmentation" else ""))

@@ -109,7 +109,7 @@ def registered_stamp(path: Path):
 
 def run(args: argparse.Namespace, encoder_factory=None) -> int:
     from drsplat.lang import export_kind, export_scene, written_codebook_path
-    from drsplat.query import select
+    from drsplat.query import select, threshold_digits
     from drsplat.splat_formats import check_writable
     from drsplat.utils import check_outputs_writable, guard_outputs, outputs_together, save_npy_atomic
 
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace, encoder_factory=None) -> int:
         left_out = f" ({unassigned:,} Gaussians without a language feature left out)" if unassigned else ""
         # to stderr when --out or --scores is standard output itself (round 56d: `--out /dev/stdout | ...` began with this line)
         top = float(best[assigned].max()) if assigned.any() else float("nan")
-        digits = 4 if mask.any() else next(d for d in range(4, 18) if f"{threshold:.{d}f}" != f"{top:.{d}f}" or d == 17)  # round 78b F1
+        digits = 4 if mask.any() else threshold_digits(threshold, top)
         print(f"{int(mask.sum())} of {len(mask)} Gaussians score >= {threshold + 0.0:.{digits}f}{left_out}", file=common.table_stream(args.out, args.scores))
         if args.out is not None and not mask.any():  # a PLY of no Gaussians, which drsplat itself (and the viewer) then refuses to open
             raise DrsplatError(f"no Gaussian scores >= {threshold + 0.0:.{digits}f} (the best score is {top:.{digits}f}): "

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drsplat.cameras import Camera, distorted_source, lens_corner_shift
+from drsplat.cameras import Camera, distorted_source, lens_corner_shift, unobserved_pixels
 from drsplat.defaults import LERF_ALPHA_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView, check_annotation_size
 from drsplat.utils import CancelToken, progress
@@ -110,10 +110,9 @@ def annotation_on_pinhole(view: AnnotatedView, cam: Camera) -> tuple[AnnotatedVi
     if cam.distortion is None:
         return view, None
     src_u, src_v = distorted_source(cam, (view.height, view.width))
-    u, v = np.rint(src_u), np.rint(src_v)
-    seen = (u >= 0) & (u <= view.width - 1) & (v >= 0) & (v <= view.height - 1)
-    iu = np.where(seen, u, 0).astype(np.int64)
-    iv = np.where(seen, v, 0).astype(np.int64)
+    seen = ~unobserved_pixels(cam, (view.width, view.height))
+    iu = np.clip(np.rint(src_u), 0, view.width - 1).astype(np.int64)
+    iv = np.clip(np.rint(src_v), 0, view.height - 1).astype(np.int64)
     masks = {c: np.asarray(m, bool)[iv, iu] & seen for c, m in view.masks.items()}
     boxes = {}
     for category, rows in view.boxes.items():
@@ -135,7 +134,7 @@ def _box_on_pinhole(box: np.ndarray, src_u: np.ndarray, src_v: np.ndarray, iu: n
     ys, xs = np.nonzero(inside)
     if xs.size:
         return np.array([xs.min(), ys.min(), xs.max(), ys.max()], np.float64)
-    gap = np.hypot(src_u - 0.5 * (x1 + x2), src_v - 0.5 * (y1 + y2))
+    gap = np.where(seen, np.hypot(src_u - 0.5 * (x1 + x2), src_v - 0.5 * (y1 + y2)), np.inf)  # never a pixel the photo missed (round 97a F3)
     y, x = np.unravel_index(np.argmin(gap), gap.shape)
     return np.array([x, y, x, y], np.float64) if gap[y, x] <= 0.5 * max(abs(x2 - x1), abs(y2 - y1)) + 1.0 else None
 

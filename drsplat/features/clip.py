@@ -40,7 +40,7 @@ def checkpoint_problem(path: Path, exc: BaseException) -> str:
     text = str(exc)
     # open_clip asserts "text pos_embed width changed!" for a checkpoint of another architecture (round 87c F1: then called unreadable)
     if any(word in text for word in ("size mismatch", "Missing key", "Unexpected key", "width changed")):
-        return "its weights do not fit this architecture (missing, unexpected or mis-shaped tensors)"
+        return _no_weights(_torch_contents(path)) or "its weights do not fit this architecture (missing, unexpected or mis-shaped tensors)"
     try:
         with open(path, "rb") as f:
             start = f.read(4)
@@ -56,26 +56,36 @@ def checkpoint_problem(path: Path, exc: BaseException) -> str:
         return "it is neither a torch.save checkpoint (a zip archive) nor a pickle"
     if "unsupported global" in text.lower():  # "Unsupported global: ..." and "unsupported GLOBAL posix.system ... is blocked"
         return "it holds Python objects besides tensors, which are not unpickled (torch.load weights_only)"
-    held = _what_it_holds(path) if is_zip else None
-    if held is not None:  # round 96b F2: readable files (a list, an fp16 state dict of another architecture) were called unreadable
-        return held
+    state = _torch_contents(path) if is_zip else UNREADABLE
+    if state is not UNREADABLE:  # round 96b F2: readable files (a list, an fp16 state dict of another architecture) were called unreadable
+        return _no_weights(state) or "its weights do not fit this architecture (another model's, or tensors of another type)"
     return "it is a zip archive, but not a readable torch.save checkpoint" if is_zip else "it is a pickle, but not of a checkpoint torch can read"
 
 
-def _what_it_holds(path: Path) -> str | None:
-    """Why a torch.save file that torch reads (tensors only, memory-mapped) is no checkpoint of this model: it holds no
-    state dict, or one whose tensors do not fit it; None when torch cannot read it either."""
+UNREADABLE = object()  # `_torch_contents` of a file torch does not read
+
+
+def _torch_contents(path: Path) -> object:
+    """What torch reads from `path` (tensors only, memory-mapped), its "state_dict" entry where it has one; UNREADABLE
+    when torch reads nothing."""
     import torch
 
     try:
         state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception:  # noqa: BLE001 - any failure: the caller's "not readable"
+        return UNREADABLE
+    return state["state_dict"] if isinstance(state, dict) and isinstance(state.get("state_dict"), dict) else state
+
+
+def _no_weights(state: object) -> str | None:
+    """Why `_torch_contents` holds no weights at all ("torch reads it, but it holds list, ..."), None where it holds a
+    dict of tensors or torch read nothing (round 97a F7: a dict of no tensor was said not to fit the architecture)."""
+    import torch
+
+    if state is UNREADABLE or (isinstance(state, dict) and any(isinstance(v, torch.Tensor) for v in state.values())):
         return None
-    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
-        state = state["state_dict"]
-    if not isinstance(state, dict) or not any(isinstance(v, torch.Tensor) for v in state.values()):
-        return f"torch reads it, but it holds {type(state).__name__ if not isinstance(state, dict) else 'a dict of no tensors'}, not a state dict of weights"
-    return "its weights do not fit this architecture (another model's, or tensors of another type)"
+    held = type(state).__name__ if not isinstance(state, dict) else "a dict of no tensors"
+    return f"torch reads it, but it holds {held}, not a state dict of weights"
 
 
 def unsupported_model_name(model: str) -> str | None:
