@@ -553,3 +553,24 @@ def test_a_mask_the_lens_moves_off_the_view_is_not_called_empty(caplog):
         warn_empty_ground_truth(moved, "nothing", photo)
     assert "'lamp': the ground-truth mask lies wholly outside what the pinhole camera sees" in caplog.text
     assert "'nothing': the ground-truth mask is empty" in caplog.text
+
+
+def test_a_wide_lens_folded_back_is_not_taken_as_seen():
+    """Round 97b F2: a 120-degree view with k1 = -0.3 (a lens `check_distortion` accepts) folds back past r = 1.05: the
+    pinhole pixels beyond read photo pixels nearer ones already show, and were taken as seen (an annotation copied
+    there). Along the middle row, the photo column each seen pixel reads now only grows."""
+    from drsplat.cameras import Camera, distorted_source, unobserved_pixels
+
+    w, h = 400, 300
+    f = w / 2 / np.tan(np.radians(60))
+    cam = Camera(R=np.eye(3), t=np.zeros(3), fx=f, fy=f, cx=w / 2, cy=h / 2, width=w, height=h, name="v",
+                 distortion=np.array([-0.3, 0.0, 0.0, 0.0]))
+    seen = ~unobserved_pixels(cam, (w, h))
+    su, _ = distorted_source(cam, (h, w))
+    row = su[h // 2][seen[h // 2]]
+    assert row.size > 0 and (np.diff(row) > 0).all()
+    assert not seen[h // 2, 0] and not seen[h // 2, -1]  # past the fold at both ends of the row
+    mild = Camera(R=np.eye(3), t=np.zeros(3), fx=f, fy=f, cx=w / 2, cy=h / 2, width=w, height=h, name="v",
+                  distortion=np.array([0.05, 0.0, 0.0, 0.0]))
+    assert unobserved_pixels(mild, (w, h)).sum() == (~(np.abs(distorted_source(mild, (h, w))[0] - (w - 1) / 2) <= w / 2)
+                                                     | ~(np.abs(distorted_source(mild, (h, w))[1] - (h - 1) / 2) <= h / 2)).sum()
