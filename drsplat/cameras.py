@@ -2256,10 +2256,14 @@ def distorted_source(camera: Camera, shape: tuple[int, int]) -> tuple[np.ndarray
     that holds its distorted picture, in the file's pixel indices (pixel i covers [i − ½, i + ½]): unprojected with
     the pinhole intrinsics, distorted (`distort_normalized`), projected with the intrinsics rescaled to the file."""
     sx, sy = shape[1] / camera.width, shape[0] / camera.height
-    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
-    xy = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy], axis=-1)
-    d = distort_normalized(xy, camera.distortion)
+    d = distort_normalized(pinhole_rays(camera), camera.distortion)
     return (d[..., 0] * camera.fx + camera.cx) * sx - 0.5, (d[..., 1] * camera.fy + camera.cy) * sy - 0.5
+
+
+def pinhole_rays(camera: Camera) -> np.ndarray:
+    """[H, W, 2] the normalised image coordinates (x/z, y/z) of `camera`'s pixel centres (pinhole intrinsics)."""
+    u, v = np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5)
+    return np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy], axis=-1)
 
 
 def undistort_image(image: np.ndarray, camera: Camera, file_size: tuple[int, int]) -> np.ndarray:
@@ -2289,11 +2293,15 @@ def unobserved_pixels(camera: Camera, file_size: tuple[int, int]) -> np.ndarray 
     pincushion lens leaves the corners, fox's 1.6 % of every view); None for a camera without distortion. COLMAP's
     image_undistorter picks a smaller camera instead, gsplat and nerfstudio crop; `drsplat features` gives these
     pixels no mask (round 57b), so they lift nothing."""
-    if camera.distortion is None:
-        return None
+    return None if camera.distortion is None else source_and_unobserved(camera, file_size)[2]
+
+
+def source_and_unobserved(camera: Camera, file_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(`distorted_source` in a file of `file_size` (w, h), `unobserved_pixels`) of a distorted camera, the source
+    computed once: [H, W] u, v and the [H, W] bool pixels that lie outside the file or past the lens's fold."""
     src_u, src_v = distorted_source(camera, (file_size[1], file_size[0]))
     outside = ~((src_u >= -0.5) & (src_u <= file_size[0] - 0.5) & (src_v >= -0.5) & (src_v <= file_size[1] - 0.5))
-    return outside | beyond_the_fold(camera)
+    return src_u, src_v, outside | beyond_the_fold(camera)
 
 
 def beyond_the_fold(camera: Camera) -> np.ndarray:
@@ -2305,8 +2313,9 @@ def beyond_the_fold(camera: Camera) -> np.ndarray:
     k1, k2 = float(camera.distortion[0]), float(camera.distortion[1])
     roots = np.roots([5.0 * k2, 3.0 * k1, 1.0]) if k2 != 0.0 else (np.array([-1.0 / (3.0 * k1)]) if k1 != 0.0 else np.zeros(0))
     real = [float(z.real) for z in np.atleast_1d(roots) if abs(z.imag) < 1e-12 and z.real > 0]
-    u, v = np.meshgrid((np.arange(camera.width) + 0.5 - camera.cx) / camera.fx, (np.arange(camera.height) + 0.5 - camera.cy) / camera.fy)
-    return u * u + v * v >= min(real) if real else np.zeros((camera.height, camera.width), bool)
+    if not real:
+        return np.zeros((camera.height, camera.width), bool)
+    return np.square(pinhole_rays(camera)).sum(axis=-1) >= min(real)
 
 
 MISSING_SHOWN = 3  # image names a missing-images warning lists

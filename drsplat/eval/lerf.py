@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drsplat.cameras import Camera, distorted_source, lens_corner_shift, unobserved_pixels
+from drsplat.cameras import Camera, lens_corner_shift, source_and_unobserved
 from drsplat.defaults import LERF_ALPHA_THRESHOLD
 from drsplat.eval.datasets import AnnotatedView, check_annotation_size
 from drsplat.utils import CancelToken, progress
@@ -109,8 +109,8 @@ def annotation_on_pinhole(view: AnnotatedView, cam: Camera) -> tuple[AnnotatedVi
     corners, changed no score: the polygons were compared with pinhole renders as they were drawn)."""
     if cam.distortion is None:
         return view, None
-    src_u, src_v = distorted_source(cam, (view.height, view.width))
-    seen = ~unobserved_pixels(cam, (view.width, view.height))
+    src_u, src_v, unseen = source_and_unobserved(cam, (view.width, view.height))  # the source once (it was computed twice)
+    seen = ~unseen
     iu = np.clip(np.rint(src_u), 0, view.width - 1).astype(np.int64)
     iv = np.clip(np.rint(src_v), 0, view.height - 1).astype(np.int64)
     masks = {c: np.asarray(m, bool)[iv, iu] & seen for c, m in view.masks.items()}
