@@ -524,8 +524,9 @@ def atomic_path(path: str | Path, cancel: CancelToken | None = None) -> Iterator
     tmp_path = temp_beside(shown)
     try:
         yield tmp_path
-        replace_with_temp(tmp_path, shown)
-        _note_written(target)
+        with stop_signals_held():  # a signal between the rename and its record left the new file out of an enclosing
+            replace_with_temp(tmp_path, shown)  # `outputs_together`'s undo: one output new, another old (round 96a F3)
+            _note_written(target)
     except OSError as exc:
         raise naming_path(exc, shown, tmp_path) from None
     finally:

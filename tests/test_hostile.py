@@ -3786,3 +3786,34 @@ def test_verbose_logging_leaves_out_pils_chunk_lines():
         root.handlers[:] = saved[0]
         root.setLevel(saved[1])
         pil.setLevel(saved[2])
+
+
+def test_a_signal_between_an_outputs_rename_and_its_record_still_rolls_it_back(tmp_path, monkeypatch):
+    """Round 96a F3: Ctrl-C just after an output's rename, before `outputs_together` recorded it, left the new file in
+    place while the block put the other outputs back: one output new, another old."""
+    import drsplat.utils as ut
+    from drsplat.utils import outputs_together, save_npy_atomic
+
+    first, second = tmp_path / "labels.npy", tmp_path / "scores.npy"
+    np.save(first, np.zeros(3))
+    np.save(second, np.zeros(3))
+    rename = ut.replace_with_temp
+
+    def rename_then_signal(tmp, path):
+        rename(tmp, path)
+        if Path(path).name == second.name:
+            signal.raise_signal(signal.SIGINT)
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # a pytest-xdist worker ignores SIGINT
+    try:
+        monkeypatch.setattr(ut, "replace_with_temp", rename_then_signal)
+        with pytest.raises(KeyboardInterrupt), outputs_together([first, second]):
+            save_npy_atomic(first, np.ones(3))
+            save_npy_atomic(second, np.ones(3))
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
+    np.testing.assert_array_equal(np.load(first), np.zeros(3))  # both put back: the set as it was
+    np.testing.assert_array_equal(np.load(second), np.zeros(3))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy", "scores.npy"]
