@@ -1020,8 +1020,19 @@ def _read_vertex_rows(path: str | Path) -> tuple[Path, PlyHeader, dict[str, Stor
     header, data = read_ply_elements(path)
     if "vertex" not in data:
         raise _fail(path, "has no 'vertex' element", field="vertex")
+    refuse_compressed_without_chunks(path, header, data)
     refuse_undeclared_row_bytes(path, header, path.stat().st_size)
     return path, header, data
+
+
+def refuse_compressed_without_chunks(path: Path, header: PlyHeader, data: dict[str, StoredRows]) -> None:
+    """InputError for vertex rows in SuperSplat's packed layout with no `chunk` element, whose per-256-splat ranges
+    they are quantised in (round 98b F1: read as an INRIA file, refused as "missing a required vertex property", x)."""
+    if "chunk" not in data and "packed_position" in (data["vertex"].dtype.names or ()):
+        elements = ", ".join(repr(element.name) for element in header.elements)
+        raise _fail(path, "is a compressed PLY (packed vertex rows) without its 'chunk' element of per-256-splat ranges, so its "
+                          f"positions, scales and colours cannot be decoded (elements: {elements}); "
+                          "re-export it, or export an uncompressed PLY", field="chunk")
 
 
 def _note_file_tail(path: Path, header: PlyHeader, data: dict[str, StoredRows], report: LoadReport) -> None:

@@ -114,6 +114,21 @@ def test_inverted_or_integer_chunk_ranges_of_a_compressed_ply_are_said(tmp_path,
         load_scene_report(tmp_path / "int.compressed.ply")
 
 
+def test_a_compressed_ply_without_its_chunk_element_is_named_so(tmp_path):
+    """Round 98b F1: packed vertex rows without the `chunk` element (dropped, or renamed 'chunks') were read as an INRIA
+    file and refused as "missing a required vertex property" x, which such a file never has."""
+    data, _ = compressed_ply_bytes(small_scene())
+    head, body = data.split(b"end_header\n", 1)
+    chunk_head = b"element chunk" + head.split(b"element chunk", 1)[1].split(b"element vertex", 1)[0]
+    chunk_bytes = 2 * 18 * 4
+    (tmp_path / "renamed.ply").write_bytes(head.replace(b"element chunk 2", b"element chunks 2", 1) + b"end_header\n" + body)
+    (tmp_path / "dropped.ply").write_bytes(head.replace(chunk_head, b"", 1) + b"end_header\n" + body[chunk_bytes:])
+    for name, elements in (("renamed.ply", "'chunks', 'vertex'"), ("dropped.ply", "'vertex'")):
+        with pytest.raises(InputError, match=rf"{name}: field 'chunk': is a compressed PLY \(packed vertex rows\) without its 'chunk' "
+                                             rf"element of per-256-splat ranges.*\(elements: {elements}\)"):
+            load_scene_report(tmp_path / name)
+
+
 def test_a_gzipped_ply_named_splat_is_refused_as_a_gzipped_ply(tmp_path):
     """It was decoded as .splat records: hundreds of garbage Gaussians and five warnings; named .ply it was refused."""
     save_ply(small_scene(), tmp_path / "s.ply")
