@@ -230,18 +230,20 @@ def embedding_row_problems(arr: np.ndarray) -> EmbeddingRowProblems:
     return EmbeddingRowProblems(beyond, no_direction, huge, tiny, norms)
 
 
-def load_query_embeddings(path: str | Path, dim: int) -> np.ndarray:
-    """Read Q.npy, (D,) or (K, D), as unit rows [K, D] (InputError for bad shape or values)."""
+def load_query_embeddings(path: str | Path, dim: int, kind: str = "query") -> np.ndarray:
+    """Read Q.npy, (D,) or (K, D), as unit rows [K, D] (InputError for bad shape or values). kind: what the rows are to
+    the caller ("query", "negative", "label"), as an empty file's message says it (round 98c F3: "no query rows" for an
+    empty --negative-embeddings)."""
     arr = _load_npy(path)
     shape = arr.shape  # as stored, for the message
+    if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):  # first: a string array's shape
+        raise InputError(path, f"expected a float array, got dtype {arr.dtype}")  # is not its problem (round 98c F3)
     if arr.ndim == 1:
         arr = arr[None]
     if arr.ndim == 2 and arr.shape[1] == dim and arr.shape[0] == 0:  # the shape is one of those named, K = 0 (round 61b)
-        raise InputError(path, f"holds no query rows (shape {shape}); expected ({dim},) or (K, {dim}) with K >= 1")
+        raise InputError(path, f"holds no {kind} rows (shape {shape}); expected ({dim},) or (K, {dim}) with K >= 1")
     if arr.ndim != 2 or arr.shape[1] != dim:
         raise InputError(path, f"expected shape ({dim},) or (K, {dim}), got {shape}")
-    if not np.issubdtype(arr.dtype, np.floating) and not np.issubdtype(arr.dtype, np.integer):
-        raise InputError(path, f"expected a float array, got dtype {arr.dtype}")
     bad = embedding_row_problems(arr)
     if bad.beyond_float32.any():  # the float32 cast would make them inf (with numpy's overflow warning)
         raise InputError(path, f"rows {np.flatnonzero(bad.beyond_float32)[:10].tolist()} hold values beyond float32's range (±3.4e38); "
@@ -305,8 +307,11 @@ def relevancy_from_scores(positive: np.ndarray, negative: np.ndarray, temperatur
     rel = min_c softmax(t·[p, n_c])[0] = min_c σ(t(p − n_c)) = σ(t(p − max_c n_c)),
     the probability of the query against its hardest canonical phrase (t = 10 as LERF/LangSplat).
     In float64, RELEVANCY_ROWS rows at a time: whole, its temporaries took 4x the [N, K] float32 result
-    (5M Gaussians, K = 30: 6.5 GB against cosine's 3.0; round 61b).
+    (5M Gaussians, K = 30: 6.5 GB against cosine's 3.0; round 61b). t must be finite and positive: NaN scored every
+    Gaussian NaN, a negative t turned the ranking over, t = 0 gave every Gaussian ½ (round 98c F2).
     """
+    if not (isinstance(temperature, (int, float, np.number)) and math.isfinite(temperature) and temperature > 0):
+        raise DrsplatError(f"the relevancy temperature must be a finite positive number (LERF's is {RELEVANCY_TEMPERATURE}), got {temperature!r}")
     out = np.empty(positive.shape, np.float32)
     for lo in range(0, positive.shape[0], RELEVANCY_ROWS):
         rows = slice(lo, lo + RELEVANCY_ROWS)
@@ -480,6 +485,8 @@ def segment(field: LanguageField, label_embeddings: np.ndarray, background: np.n
         raise ValueError(f"min_score must be a finite cosine, got {min_score!r}")
     labels_emb = field_rows(field, label_embeddings, "label embedding")
     n_labels = labels_emb.shape[0]
+    if n_labels == 0:  # every Gaussian was labelled background with a best score of -inf (round 98c F1)
+        raise DrsplatError("segmentation needs at least one label embedding")
     queries = labels_emb if background is None else np.concatenate([labels_emb, field_rows(field, background, "background embedding")])
     queries = queries[first_of_direction(queries)]  # rows of one direction are one label: the first wins their ties, as documented
     best, best_score = _argmax_scores(field, queries, lut_bits, device)

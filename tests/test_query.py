@@ -412,6 +412,25 @@ def test_an_embedding_file_of_no_rows_says_so(tmp_path):
         load_query_embeddings(tmp_path / "q0.npy", 16)
 
 
+def test_an_empty_negative_or_label_file_and_a_string_array_are_named_for_what_they_are(tmp_path, registered, fields, capsys):
+    """Round 98c F3: an empty --negative-embeddings or segment --embeddings file was refused as holding "no query rows";
+    a string array of the wrong length as of the wrong shape, not as no numbers at all."""
+    kind = next(iter(registered))
+    ply, dim = registered[kind], fields[kind].dim
+    np.save(tmp_path / "empty.npy", np.zeros((0, dim), np.float32))
+    np.save(tmp_path / "q.npy", np.ones(dim, np.float32))
+    np.save(tmp_path / "words.npy", np.array(["a red apple"] * 3))
+    runs = {
+        "negative": ["query", str(ply), "--embedding", str(tmp_path / "q.npy"), "--relevancy", "--negative-embeddings", str(tmp_path / "empty.npy")],
+        "label": ["segment", str(ply), "--embeddings", str(tmp_path / "empty.npy"), "--out", str(tmp_path / "l.npy")],
+    }
+    for rows, command in runs.items():
+        assert main(command) == 1
+        assert f"empty.npy: holds no {rows} rows (shape (0, {dim}))" in capsys.readouterr().err
+    assert main(["query", str(ply), "--embedding", str(tmp_path / "words.npy")]) == 1
+    assert "words.npy: expected a float array, got dtype <U11" in capsys.readouterr().err
+
+
 def test_top_ids_are_the_full_stable_sorts_first_rows():
     """Round 61b: `query --top` sorted all N scores (3 s of a 10M query); now only those at least the top-th, the same ids."""
     from drsplat.commands.query import top_ids
@@ -1236,3 +1255,19 @@ def test_an_empty_selection_names_a_threshold_and_best_score_that_differ(tmp_pat
     said = re.search(r"no Gaussian scores >= (\S+) \(the best score is (\S+)\)", err)
     assert said and said.group(1) != said.group(2) and float(said.group(2).rstrip("):")) <= best + 1e-9, err
     assert f"Gaussians score >= {said.group(1)}" in out + err  # the count's line too (round 79a F4: 4 decimals there)
+
+
+def test_segment_without_labels_and_relevancy_at_a_bad_temperature_are_refused():
+    """Round 98c F1 / F2: segment() with no label embeddings labelled every Gaussian background at a best score of -inf;
+    relevancy() at temperature NaN scored every Gaussian NaN (nothing selected), at -10 turned the ranking over, at 0
+    gave every Gaussian ½."""
+    from drsplat.query import relevancy, segment
+
+    field = build_field(np.eye(4, dtype=np.float32)[[0, 1, 2]], np.ones(3, np.float32), "none")
+    with pytest.raises(DrsplatError, match="segmentation needs at least one label embedding"):
+        segment(field, np.zeros((0, 4), np.float32))
+    query, negatives = np.eye(4, dtype=np.float32)[:1], np.eye(4, dtype=np.float32)[3:]
+    for bad in (float("nan"), -10.0, 0.0, float("inf")):
+        with pytest.raises(DrsplatError, match=r"relevancy temperature must be a finite positive number \(LERF's is 10.0\)"):
+            relevancy(field, query, negatives, temperature=bad)
+    np.testing.assert_allclose(relevancy(field, query, negatives, temperature=10.0)[:, 0], [1 / (1 + np.exp(-10)), 0.5, 0.5], rtol=1e-6)

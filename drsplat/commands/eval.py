@@ -222,7 +222,7 @@ def label_embeddings(args: argparse.Namespace, field, names: list[str], negative
 
     encoder = None
     if args.text_embeddings is not None:
-        queries = load_query_embeddings(args.text_embeddings, field.dim)
+        queries = load_query_embeddings(args.text_embeddings, field.dim, "label")
         if queries.shape[0] != len(names):
             raise InputError(args.text_embeddings, f"{queries.shape[0]} embeddings for {len(names)} label names")
     else:
@@ -231,7 +231,7 @@ def label_embeddings(args: argparse.Namespace, field, names: list[str], negative
     if not negatives:
         warn_unused_clip_flags(args, encoder)
         return queries, None
-    extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
+    extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim, "negative")
     if encoder is None and extra is None:
         encoder = load_encoder(args, field, "--negative-embeddings ((C, D) rows standing for the canonical phrases, which "
                                             "relevancy needs)")

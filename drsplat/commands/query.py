@@ -84,7 +84,7 @@ def compute_scores(args: argparse.Namespace, field: LanguageField, queries: np.n
         common.warn_unused_clip_flags(args, encoder)
         return cosine(field, queries, lut_bits=lut_bits, device=device)
     user = [] if args.negatives is None else checked_phrases("--negatives", args.negatives)
-    extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim)
+    extra = None if args.negative_embeddings is None else load_query_embeddings(args.negative_embeddings, field.dim, "negative")
     if encoder is None and (extra is None or user):
         from drsplat.features.modelid import is_oracle
 

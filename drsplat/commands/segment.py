@@ -79,7 +79,7 @@ def label_embeddings(args: argparse.Namespace, field, encoder_factory=None) -> t
         emb = text_embeddings(encoder, names + ([BACKGROUND_PHRASE] if args.background else []), field)
     else:
         common.warn_unused_clip_flags(args, None)
-        emb = load_query_embeddings(args.embeddings, field.dim)
+        emb = load_query_embeddings(args.embeddings, field.dim, "label")
         names = embedding_names(args.embeddings, getattr(args, "names", None), emb.shape[0] - int(args.background), bool(args.background))
     if args.background:
         if emb.shape[0] < 2:
