@@ -129,12 +129,12 @@ def main(argv: list[str] | None = None, as_program: bool = False) -> int:
     except KeyboardInterrupt as exc:
         if result is NOT_RETURNED:
             log.error("interrupted%s; %s", after_writing(written_so_far()), interrupted_note(args, exc))
-            return 1
+            return stopped(as_program)
         # a signal as the command's handler block ended, its work done (round 93a F4: "interrupted ..." and exit 1 after
         # the outputs were written): the command's own outcome stands
     except Cancelled as exc:
         log.error("%s; %s", exc, interrupted_note(args, exc))
-        return 1
+        return stopped(as_program)
     except UsageError as exc:
         getattr(args, "_usage_parser", parser).print_usage(sys.stderr)
         log.error("%s", exc)
@@ -159,6 +159,15 @@ def main(argv: list[str] | None = None, as_program: bool = False) -> int:
     except BrokenPipeError:
         _silence_stdout()
     return int(result or 0)
+
+
+def stopped(as_program: bool) -> int:
+    """Exit code 1 of a command stopped by a signal, once its line is written. The process's own entry ignores further
+    signals from here: the stopped command's frames (a run's lock, its checkpoint) are let go as `main` returns, and a
+    second Ctrl-C then printed "Exception ignored in: RunLock.__del__ ... KeyboardInterrupt" (round 98d F1)."""
+    if as_program:
+        ignore_stop_signals()
+    return 1
 
 
 def entry() -> None:

@@ -18,10 +18,17 @@ def ignore_stop_signals() -> None:
     or the interrupted start said): such a signal while the interpreter shuts down (0.1-0.8 s) killed the process with
     status 130 / 143, or a KeyboardInterrupt traceback from a library's exit hook, after its last line (probe round 14;
     round 92b: the viewer's `--screenshot`, and a second Ctrl-C at start-up). Never from library code: a test or a
-    program calling drsplat keeps its handlers."""
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    program calling drsplat keeps its handlers. A signal that arrived before and waits for its handler is let go too
+    (signal.signal runs a pending handler first, which raises: the outcome is settled all the same)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    while True:
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            return
+        except KeyboardInterrupt:
+            continue
 
 
 def interrupted_start(program: str = "drsplat") -> NoReturn:

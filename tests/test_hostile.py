@@ -3817,3 +3817,42 @@ def test_a_signal_between_an_outputs_rename_and_its_record_still_rolls_it_back(t
     np.testing.assert_array_equal(np.load(first), np.zeros(3))  # both put back: the set as it was
     np.testing.assert_array_equal(np.load(second), np.zeros(3))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy", "scores.npy"]
+
+
+def test_a_second_signal_as_a_stopped_commands_frames_are_let_go_prints_no_ignored_exception(monkeypatch, capsys):
+    """Round 98d F1: a second Ctrl-C 50 ms after the first, as `register` had said "cancelled by the user" and its
+    frames (the run's lock) were let go, printed "Exception ignored in: RunLock.__del__ ... KeyboardInterrupt" (a
+    destructor cannot pass the interrupt on). The process's entry ignores further signals once that line is out."""
+    import argparse
+    import sys
+
+    import drsplat.cli as cli
+    from drsplat.errors import Cancelled
+
+    class Lock:
+        def __del__(self):
+            signal.raise_signal(signal.SIGINT)  # the second Ctrl-C, as the stopped run's lock is let go
+
+    def cancelled_run(args):
+        lock = Lock()  # noqa: F841 (held by the frame the exception keeps)
+        raise Cancelled("cancelled by the user")
+
+    def parser():
+        p = argparse.ArgumentParser(prog="drsplat")
+        p.set_defaults(func=cancelled_run, verbose=0, quiet=False)
+        return p
+
+    ignored = []
+    monkeypatch.setattr(sys, "unraisablehook", ignored.append)
+    monkeypatch.setattr(cli, "build_parser", parser)
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # a pytest-xdist worker ignores SIGINT
+    try:
+        code = cli.main([], as_program=True)
+        after = signal.getsignal(signal.SIGINT)
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert [type(u.exc_value).__name__ for u in ignored] == []
+    assert code == 1 and "cancelled by the user" in capsys.readouterr().err
+    assert after is signal.SIG_IGN  # the process's entry: nothing left to stop
