@@ -406,14 +406,21 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     # an enclosing block keeps and puts back its own outputs: a second kept copy of one (the same name) lost the earlier
     # file when both undid it (round 97a F1: `eval scannet`'s --json, in its own block inside --save-labels')
     given, targets = [g for g, t in zip(given, targets) if _written_key(t) not in covered], [t for t in targets if _written_key(t) not in covered]
-    covering = _COVERED.set(covered | {_written_key(t) for t in targets})
-    before = [_file_identity(t) for t in targets]
-    kept = [_kept_copy(t) if then is not None else None for t, then in zip(targets, before)]
-    settled = [copy is None for copy in kept]  # a kept copy is let go only once its file needs it no more
+    covering = token = None
+    before: list[tuple[int, int] | None] = []
+    kept: list[Path | None] = []
+    settled: list[bool] = []
     written: dict[str, tuple[int, int] | None] = {}
-    token = _WRITTEN.set(written)
     ended = False
     try:
+        # whole or not at all: a signal half-way left the context variables set for good (later blocks took their
+        # outputs as covered: not put back) or a kept copy no clean-up knew of (round 98a F4 / F5)
+        with stop_signals_held():
+            covering = _COVERED.set(covered | {_written_key(t) for t in targets})
+            before = [_file_identity(t) for t in targets]
+            kept = [_kept_copy(t) if then is not None else None for t, then in zip(targets, before)]
+            settled = [copy is None for copy in kept]  # a kept copy is let go only once its file needs it no more
+            token = _WRITTEN.set(written)
         yield
         ended = True  # all the rest under the held signals (round 96a F1: a signal before them left the kept copies)
     except BaseException:
@@ -438,8 +445,10 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
             if ended:
                 settled = [True] * len(kept)
                 _note_settled(given, targets, written)
-            _WRITTEN.reset(token)
-            _COVERED.reset(covering)
+            if token is not None:
+                _WRITTEN.reset(token)
+            if covering is not None:
+                _COVERED.reset(covering)
             outer = _WRITTEN.get()
             if outer is not None:
                 outer.update(written)
@@ -521,16 +530,18 @@ def atomic_path(path: str | Path, cancel: CancelToken | None = None) -> Iterator
         except OSError as exc:
             raise naming_path(exc, shown) from None
         return
-    tmp_path = temp_beside(shown)
+    tmp_path = None
     try:
+        with stop_signals_held():  # a signal as the temp file was made (mkstemp to its chmod) left it behind (round 98a F6)
+            tmp_path = temp_beside(shown)
         yield tmp_path
         with stop_signals_held():  # a signal between the rename and its record left the new file out of an enclosing
             replace_with_temp(tmp_path, shown)  # `outputs_together`'s undo: one output new, another old (round 96a F3)
             _note_written(target)
     except OSError as exc:
-        raise naming_path(exc, shown, tmp_path) from None
+        raise naming_path(exc, shown, *([tmp_path] if tmp_path is not None else [])) from None
     finally:
-        if tmp_path.exists():
+        if tmp_path is not None and tmp_path.exists():
             tmp_path.unlink()
 
 

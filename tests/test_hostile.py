@@ -3856,3 +3856,48 @@ def test_a_second_signal_as_a_stopped_commands_frames_are_let_go_prints_no_ignor
     assert [type(u.exc_value).__name__ for u in ignored] == []
     assert code == 1 and "cancelled by the user" in capsys.readouterr().err
     assert after is signal.SIG_IGN  # the process's entry: nothing left to stop
+
+
+def test_a_signal_as_outputs_together_or_a_temp_file_is_set_up_leaves_nothing_behind(tmp_path, monkeypatch):
+    """Round 98a F4 / F5 / F6: a Ctrl-C in `outputs_together`'s set-up left its context variables set for good (every
+    later block in the process took its output as covered by an enclosing one: a failed block no longer put the earlier
+    file back) and the earlier output's kept copy; one as `atomic_path` made its temp file left `.labels.npy...tmp`."""
+    import drsplat.utils as ut
+    from drsplat.utils import outputs_together, save_npy_atomic
+
+    out = tmp_path / "labels.npy"
+    np.save(out, np.zeros(3))
+    identity, mode = ut._file_identity, ut.replaced_mode
+    calls = []
+
+    def signal_on_first(real):
+        def wrapped(*args):
+            result = real(*args)
+            if not calls:
+                calls.append(args)
+                signal.raise_signal(signal.SIGINT)
+            return result
+        return wrapped
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # a pytest-xdist worker ignores SIGINT
+    try:
+        monkeypatch.setattr(ut, "_file_identity", signal_on_first(identity))  # in the set-up, after _COVERED was set
+        with pytest.raises(KeyboardInterrupt), outputs_together([out]):
+            save_npy_atomic(out, np.ones(3))
+        monkeypatch.undo()
+        assert ut._COVERED.get() == frozenset() and ut._WRITTEN.get() is None
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
+        with pytest.raises(RuntimeError), outputs_together([out]):  # a later block still puts the earlier file back
+            save_npy_atomic(out, np.full(3, 2.0))
+            raise RuntimeError("the next output failed")
+        np.testing.assert_array_equal(np.load(out), np.zeros(3))
+        calls.clear()
+        monkeypatch.setattr(ut, "replaced_mode", signal_on_first(mode))  # as atomic_path's temp file is made
+        with pytest.raises(KeyboardInterrupt):
+            save_npy_atomic(out, np.ones(3))
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert calls and sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
+    np.testing.assert_array_equal(np.load(out), np.zeros(3))
