@@ -2305,17 +2305,58 @@ def source_and_unobserved(camera: Camera, file_size: tuple[int, int]) -> tuple[n
 
 
 def beyond_the_fold(camera: Camera) -> np.ndarray:
-    """[H, W] bool: the pinhole pixels of `camera` at or past the radius where its radial distortion folds back, where
-    d/dr [r (1 + k1 r² + k2 r⁴)] = 1 + 3 k1 r² + 5 k2 r⁴ first reaches 0 (r: the distance from the principal point over
-    the focal length). Past it the lens model sends farther pixels nearer the centre again, onto photo pixels that
-    nearer pinhole pixels already show: a wide lens that `check_distortion` accepts (120 degrees, k1 = -0.3) folds 61 %
-    of its view so (round 97b F2: the folded part was taken as seen, and its annotation copied there)."""
-    k1, k2 = float(camera.distortion[0]), float(camera.distortion[1])
-    roots = np.roots([5.0 * k2, 3.0 * k1, 1.0]) if k2 != 0.0 else (np.array([-1.0 / (3.0 * k1)]) if k1 != 0.0 else np.zeros(0))
-    real = [float(z.real) for z in np.atleast_1d(roots) if abs(z.imag) < 1e-12 and z.real > 0]
-    if not real:
-        return np.zeros((camera.height, camera.width), bool)
-    return np.square(pinhole_rays(camera)).sum(axis=-1) >= min(real)
+    """[H, W] bool: the pinhole pixels of `camera` past where its lens map (`distort_normalized`) folds back: past it the
+    model sends farther pixels onto photo pixels that nearer pinhole pixels already show, so what is there was never
+    seen. A wide lens that `check_distortion` accepts (120 degrees, k1 = -0.3) folds 61 % of its view so (round 97b F2:
+    the folded part was taken as seen, and its annotation copied there).
+
+    Radial terms alone: every pixel at or past the radius where d/dr [r (1 + k1 r² + k2 r⁴)] = 1 + 3 k1 r² + 5 k2 r⁴
+    first reaches 0 (r: the distance from the principal point over the focal length; `first_radial_fold`). With the
+    tangential terms p1, p2 the fold is no circle (round 98a F3: it was looked for with k1, k2 only): a pixel is seen
+    when it lies in the region around the principal point where the map's Jacobian determinant (`lens_jacobian_det`)
+    stays positive, its pixels 4-connected to the principal point's, inside that circle."""
+    rays = pinhole_rays(camera)
+    fold = first_radial_fold(float(camera.distortion[0]), float(camera.distortion[1]))
+    folded = np.square(rays).sum(axis=-1) >= fold if fold is not None else np.zeros((camera.height, camera.width), bool)
+    if not np.any(camera.distortion[2:4]):
+        return folded
+    folded |= ~(lens_jacobian_det(rays, camera.distortion) > 0)
+    row, col = math.floor(camera.cy), math.floor(camera.cx)
+    if not folded.any() or not (0 <= row < camera.height and 0 <= col < camera.width):
+        return folded  # a principal point off the view: its pixels judged one by one
+    from scipy.ndimage import label
+
+    regions, _ = label(~folded)
+    return regions != regions[row, col] if regions[row, col] else folded
+
+
+def first_radial_fold(k1: float, k2: float) -> float | None:
+    """The least r² > 0 where 1 + 3 k1 r² + 5 k2 r⁴ = 0, or None: the roots of a t² + b t + 1 (a = 5 k2, b = 3 k1) by the
+    stable form q = -(b + sign(b) √(b² − 4a)) / 2, t = q / a and 1 / q, which a subnormal k2 (1e-310, where the companion
+    matrix of np.roots held inf: round 98a F2) leaves at the linear root -1 / b, its other root beyond every float."""
+    a, b = 5.0 * k2, 3.0 * k1
+    if a == 0.0:
+        return -1.0 / b if b < 0.0 else None
+    disc = b * b - 4.0 * a
+    if disc < 0.0:
+        return None
+    q = -0.5 * (b + math.copysign(math.sqrt(disc), b))
+    roots = [t for t in ((q / a, 1.0 / q) if q != 0.0 else (q / a,)) if t > 0.0 and math.isfinite(t)]
+    return min(roots) if roots else None
+
+
+def lens_jacobian_det(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """[...] the Jacobian determinant of `distort_normalized` at xy [..., 2]; dist (k1, k2, p1, p2). With r² = x² + y²,
+    g = 1 + k1 r² + k2 r⁴ and h = 2 (k1 + 2 k2 r²) (so ∂g/∂x = h x):
+    ∂x_d/∂x = g + h x² + 2 p1 y + 6 p2 x,  ∂x_d/∂y = ∂y_d/∂x = h x y + 2 p1 x + 2 p2 y,  ∂y_d/∂y = g + h y² + 6 p1 y + 2 p2 x.
+    Where it is ≤ 0 the map folds: nearby pinhole points share photo points."""
+    k1, k2, p1, p2 = (float(c) for c in dist[:4])
+    x, y = xy[..., 0], xy[..., 1]
+    r2 = x * x + y * y
+    g = 1.0 + k1 * r2 + k2 * r2 * r2
+    h = 2.0 * (k1 + 2.0 * k2 * r2)
+    off = h * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    return (g + h * x * x + 2.0 * p1 * y + 6.0 * p2 * x) * (g + h * y * y + 6.0 * p1 * y + 2.0 * p2 * x) - off * off
 
 
 MISSING_SHOWN = 3  # image names a missing-images warning lists
