@@ -411,7 +411,8 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     kept: list[Path | None] = []
     settled: list[bool] = []
     written: dict[str, tuple[int, int] | None] = {}
-    ended = False
+    ended = cleaned = False
+    interrupt = None
     try:
         # whole or not at all: a signal half-way left the context variables set for good (later blocks took their
         # outputs as covered: not put back) or a kept copy no clean-up knew of (round 98a F4 / F5)
@@ -441,21 +442,28 @@ def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
             settled[i] = True
         raise
     finally:
-        with stop_signals_held():
-            if ended:
-                settled = [True] * len(kept)
-                _note_settled(given, targets, written)
-            if token is not None:
-                _WRITTEN.reset(token)
-            if covering is not None:
-                _COVERED.reset(covering)
-            outer = _WRITTEN.get()
-            if outer is not None:
-                outer.update(written)
-            for copy, done in zip(kept, settled):
-                if copy is not None and done:  # one not put back yet (a second Ctrl-C in the loop) stays for the user (round 62a)
-                    with contextlib.suppress(OSError):
-                        copy.unlink()
+        while not cleaned:  # a signal as the hold began (before its handlers were in) skipped the clean-up (round 98a F7)
+            try:
+                with stop_signals_held():
+                    if ended:
+                        settled = [True] * len(kept)
+                        _note_settled(given, targets, written)
+                    if token is not None:
+                        _WRITTEN.reset(token)
+                    if covering is not None:
+                        _COVERED.reset(covering)
+                    outer = _WRITTEN.get()
+                    if outer is not None:
+                        outer.update(written)
+                    for copy, done in zip(kept, settled):
+                        if copy is not None and done:  # one not put back yet (a second Ctrl-C in the loop) stays for the user (round 62a)
+                            with contextlib.suppress(OSError):
+                                copy.unlink()
+                    cleaned = True
+            except KeyboardInterrupt as exc:  # raised before the clean-up, or by the hold as it ended after it
+                interrupt = exc
+        if interrupt is not None:
+            raise interrupt
 
 
 _WRITTEN: contextvars.ContextVar[dict | None] = contextvars.ContextVar("drsplat_written_outputs", default=None)

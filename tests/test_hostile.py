@@ -3901,3 +3901,34 @@ def test_a_signal_as_outputs_together_or_a_temp_file_is_set_up_leaves_nothing_be
         signal.signal(signal.SIGINT, before)
     assert calls and sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
     np.testing.assert_array_equal(np.load(out), np.zeros(3))
+
+
+def test_a_signal_as_outputs_together_begins_its_clean_up_still_cleans_up(tmp_path, monkeypatch):
+    """Round 98a F7: a Ctrl-C at the clean-up's `with stop_signals_held()`, before the hold's handlers were in, skipped
+    the whole clean-up: the earlier output's kept copy left beside the new one and the block's context variables set,
+    while the command said no partial output file was left."""
+    import contextlib
+
+    import drsplat.utils as ut
+    from drsplat.utils import outputs_together, save_npy_atomic
+
+    out = tmp_path / "labels.npy"
+    np.save(out, np.zeros(3))
+    real, armed = ut.stop_signals_held, []
+
+    @contextlib.contextmanager
+    def signal_as_the_hold_begins():
+        if armed:
+            armed.clear()
+            raise KeyboardInterrupt  # the Ctrl-C lands before the hold's handlers are in
+        with real():
+            yield
+
+    monkeypatch.setattr(ut, "stop_signals_held", signal_as_the_hold_begins)
+    with pytest.raises(KeyboardInterrupt), outputs_together([out]):
+        save_npy_atomic(out, np.ones(3))
+        armed.append(True)  # the next hold is the clean-up's
+    monkeypatch.undo()
+    assert not armed and ut._COVERED.get() == frozenset() and ut._WRITTEN.get() is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
+    np.testing.assert_array_equal(np.load(out), np.ones(3))  # the block had ended: the new output stands
