@@ -368,3 +368,32 @@ def test_a_fine_threshold_grid_is_printed_with_its_own_decimals():
     report = IoUReport("loc", "volume", ["a"], np.array([0.6]), threshold=coarse[7][0], curve=coarse)
     assert format_reports([report]).splitlines()[-1].split()[-2] == "0.07"
     assert "  0.07   0.500  <- best" in format_curve(report)
+
+
+def test_match_gaussians_pairs_each_copy_with_its_own_position_and_rest_in_a_cluster_of_positions():
+    """Round 98a F1: four positions within one matching radius of one another, two Gaussians at each (their rests
+    differ), one pruned: rows at different positions shared a group, ranked by the distance to its first row, so one
+    position's copy took another's originals and a copy then one of another rest ([0, 4, 1, 2, 5, 6, 3]). Each copy is
+    paired with its original (the identity), and in random dense clusters no row with another rest."""
+    from drsplat.eval.metrics import match_gaussians
+
+    radius = 1e-4  # tolerance 1e-5 x the extent 10
+    spots = {"A": (0.1477, 0.1982), "B": (0.3785, 0.7784), "C": (1.0537, 1.2348), "D": (1.1259, 0.1407)}
+    at = ["A", "B", "C", "D", "C", "A", "B", "D"]
+    means = np.array([[spots[a][0] * radius, spots[a][1] * radius, 0.0] for a in at] + [[10.0, 10.0, 10.0]])
+    rest = np.array([[1], [1], [0], [1], [1], [0], [0], [1], [9]], np.float32)
+    keep = [0, 1, 3, 4, 5, 6, 7, 8]
+    assert match_gaussians(means, means[keep], original_rest=rest, subset_rest=rest[keep]).tolist() == keep
+    rng = np.random.default_rng(7)
+    wrong = 0
+    for _ in range(300):
+        places = np.zeros((rng.integers(3, 9), 3))
+        places[:, :2] = rng.uniform(0, 1.6 * radius, (len(places), 2))
+        which = np.concatenate([np.arange(len(places)), rng.integers(0, len(places), rng.integers(0, 2 * len(places) + 1))])
+        means = np.vstack([places[which], [[10.0, 10.0, 10.0]]])
+        rest = np.vstack([rng.integers(0, 3, (len(which), 2)), [[9, 9]]]).astype(np.float32)
+        keep = np.sort(rng.choice(len(which), rng.integers(1, len(which) + 1), replace=False)).tolist() + [len(which)]
+        idx = match_gaussians(means, means[keep], original_rest=rest, subset_rest=rest[keep])
+        assert sorted(set(idx.tolist())) == sorted(idx.tolist())  # one to one
+        wrong += int((rest[idx] != rest[keep]).any(axis=1).sum() + (means[idx] != means[keep]).any(axis=1).sum())
+    assert wrong == 0

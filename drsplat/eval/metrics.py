@@ -563,53 +563,77 @@ def _shares_a_position(tree, idx: np.ndarray, radius: float) -> np.ndarray:
 def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, rest_keys: tuple[np.ndarray, np.ndarray] | None,
                        shared: np.ndarray) -> None:
     """Re-pair, in place, the rows `shared` of `idx` [M] (`_rows_to_repair`). Rows with the same originals within
-    `radius` (the copies of one position) take first the originals whose rest is theirs (`rest_keys`: originals',
-    copy's), then the others in row order, nearest first, then in row order (round 60a: the first in row order took a
-    distinct Gaussian 3e-5 away before the exact copy); each group in O(K log K), its ball found once for each distinct
-    position (round 60c: row by row, 10,000 copies of one position took 92 s; round 96a F5: a ball and its sort for
-    each of K copies, quadratic). When a group finds too few free originals, a maximum bipartite matching of every
-    shared row decides (row by row, one valid pairing was refused); ValueError when even that leaves a row without one."""
+    `radius` (a group: the copies of one position, or of positions nearer than `radius`) take first the originals whose
+    rest is theirs (`rest_keys`: originals', copy's; `_pair_alike`), then the others in row order, each row the nearest
+    free one to its own position, then in row order (round 60a: the first in row order took a distinct Gaussian 3e-5 away
+    before the exact copy; round 98a F1: ranked by the distance to the group's first row, a row at another position of
+    the group took that position's originals, and a copy then one of another rest); each group in O(K log K) for each of
+    its distinct positions, its ball found once for each (round 60c: row by row, 10,000 copies of one position took 92 s;
+    round 96a F5: a ball and its sort for each of K copies, quadratic). When a group finds too few free originals, a
+    maximum bipartite matching of every shared row decides (row by row, one valid pairing was refused); ValueError when
+    even that leaves a row without one."""
     fixed = set(np.delete(idx, shared).tolist())  # the originals of the rows not paired again
     taken = set(fixed)
     positions, where = np.unique(sub[shared], axis=0, return_inverse=True)
+    where = where.reshape(-1).tolist()
     balls = tree.query_ball_point(positions, r=radius)
-    nears = [balls[j] for j in where.reshape(-1).tolist()]  # a row's ball: the list of its position's, not a copy
+    nears = [balls[j] for j in where]  # a row's ball: the list of its position's, not a copy
     groups: dict[tuple[int, ...], list[int]] = {}
     keys = [tuple(sorted(ball)) for ball in balls]
-    for k, j in enumerate(where.reshape(-1).tolist()):
+    for k, j in enumerate(where):
         groups.setdefault(keys[j], []).append(k)
     for near, members in groups.items():
-        first = sub[shared[members[0]]]
-        ranked = sorted((c for c in near if c not in taken), key=lambda c: (float(np.square(tree.data[c] - first).sum()), c))
-        if len(ranked) < len(members):
+        free = [c for c in near if c not in taken]
+        if len(free) < len(members):
             _pair_by_matching(shared, nears, fixed, idx)
             return
-        left, free = _pair_alike(members, ranked, shared, idx, rest_keys)
-        for k, c in zip(left, free):
-            idx[shared[k]] = c
-        taken.update(idx[shared[members]].tolist())
+        at: dict[int, list[int]] = {}  # the group's rows by position, each in row order
+        for k in members:
+            at.setdefault(where[k], []).append(k)
+        candidates = np.asarray(free, np.int64)
+        ranked, there = {}, {}
+        for j in at:
+            offsets = tree.data[candidates] - positions[j]
+            ranked[j] = candidates[np.lexsort((candidates, np.square(offsets).sum(axis=1)))].tolist()
+            there[j] = set(candidates[(offsets == 0).all(axis=1)].tolist())
+        used: set[int] = set()
+        left = _pair_alike(at, ranked, there, shared, idx, rest_keys, used)
+        for j, rows in left.items():
+            nearest = (c for c in ranked[j] if c not in used)
+            for k in rows:
+                idx[shared[k]] = next(nearest)
+                used.add(int(idx[shared[k]]))
+        taken.update(used)
 
 
-def _pair_alike(members: list[int], ranked: list[int], shared: np.ndarray, idx: np.ndarray,
-                rest_keys: tuple[np.ndarray, np.ndarray] | None) -> tuple[list[int], list[int]]:
-    """Pair, in place in `idx`, each of a co-located group's `members` with the first of the free originals `ranked` whose
-    rest is the same bits; returns the members and the originals left to pair in row order."""
+def _pair_alike(at: dict[int, list[int]], ranked: dict[int, list[int]], there: dict[int, set[int]], shared: np.ndarray,
+                idx: np.ndarray, rest_keys: tuple[np.ndarray, np.ndarray] | None, used: set[int]) -> dict[int, list[int]]:
+    """Pair, in place in `idx`, the rows of a co-located group (`at`: position -> rows) with free originals whose rest is
+    the same bits: first those at the row's very position (`there`: an exact copy's own original, whichever position of
+    the group comes first), then the nearest to the row's position (`ranked`: position -> free originals, nearest first);
+    adds the originals taken to `used` and returns the rows left (position -> rows) to pair in row order."""
     if rest_keys is None:
-        return members, ranked
+        return at
     originals, copies = rest_keys
-    alike: dict[bytes, list[int]] = {}
-    for c in reversed(ranked):  # each list nearest last, so pop() takes the nearest (O(K) a group: 3,000 copies of a position)
-        alike.setdefault(originals[c].tobytes(), []).append(c)
-    used = set()
-    left = []
-    for k in members:
-        same = alike.get(copies[shared[k]].tobytes())
-        if same:
-            idx[shared[k]] = same.pop()
-            used.add(int(idx[shared[k]]))
-        else:
-            left.append(k)
-    return left, [c for c in ranked if c not in used]
+    left = at
+    for exact in (True, False):
+        still: dict[int, list[int]] = {}
+        for j, rows in left.items():
+            alike: dict[bytes, list[int]] = {}
+            for c in reversed(ranked[j]):  # each list nearest last, so pop() takes the nearest (O(K) a position)
+                if c not in used and (not exact or c in there[j]):
+                    alike.setdefault(originals[c].tobytes(), []).append(c)
+            for k in rows:
+                same = alike.get(copies[shared[k]].tobytes())
+                while same and same[-1] in used:
+                    same.pop()
+                if same:
+                    idx[shared[k]] = same.pop()
+                    used.add(int(idx[shared[k]]))
+                else:
+                    still.setdefault(j, []).append(k)
+        left = still
+    return left
 
 
 def _pair_by_matching(shared: np.ndarray, nears: list, taken: set, idx: np.ndarray) -> None:
