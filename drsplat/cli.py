@@ -201,7 +201,15 @@ def sigterm_as_interrupt():
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        pending = None
+        while True:  # a Ctrl-C as it is put back left SIGTERM raising KeyboardInterrupt after main returned (round 96a F11)
+            try:
+                signal.signal(signal.SIGTERM, previous)
+                break
+            except KeyboardInterrupt as exc:
+                pending = exc
+        if pending is not None:
+            raise pending
 
 
 def _silence_stdout() -> None:

@@ -3932,3 +3932,27 @@ def test_a_signal_as_outputs_together_begins_its_clean_up_still_cleans_up(tmp_pa
     assert not armed and ut._COVERED.get() == frozenset() and ut._WRITTEN.get() is None
     assert sorted(p.name for p in tmp_path.iterdir()) == ["labels.npy"]
     np.testing.assert_array_equal(np.load(out), np.ones(3))  # the block had ended: the new output stands
+
+
+def test_a_ctrl_c_as_sigterm_is_put_back_still_puts_it_back(monkeypatch):
+    """Round 96a F11: a Ctrl-C as `sigterm_as_interrupt` put SIGTERM's handler back left it raising KeyboardInterrupt
+    for good in a program that called drsplat's main."""
+    from drsplat.cli import sigterm_as_interrupt
+
+    real, cut = signal.signal, []
+
+    def cut_once(signum, handler):
+        if signum == signal.SIGTERM and handler is not signal.default_int_handler and not cut:
+            cut.append(handler)
+            raise KeyboardInterrupt  # the Ctrl-C lands as the handler is put back
+        return real(signum, handler)
+
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        monkeypatch.setattr(signal, "signal", cut_once)
+        with pytest.raises(KeyboardInterrupt), sigterm_as_interrupt():
+            pass
+        monkeypatch.undo()
+        assert cut and signal.getsignal(signal.SIGTERM) is before
+    finally:
+        signal.signal(signal.SIGTERM, before)
