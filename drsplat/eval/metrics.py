@@ -513,7 +513,8 @@ def match_gaussians(original_means: np.ndarray, subset_means: np.ndarray, tolera
     finite = np.isfinite(orig).all(axis=1)
     extent = float(np.ptp(orig[finite], axis=0).max()) if finite.any() else 1.0
     tree = cKDTree(np.where(finite[:, None], orig, 1e30))
-    dist, idx = tree.query(sub)
+    distinct, back = _once_per_position(sub)
+    dist, idx = (result[back] for result in tree.query(distinct))
     bad = ~(dist <= tolerance * max(extent, 1e-12))
     if bad.any():
         raise ValueError(f"{int(bad.sum())} Gaussians have no counterpart in the original scene (e.g. #{int(np.flatnonzero(bad)[0])})")
@@ -539,7 +540,9 @@ def _rows_to_repair(tree, sub: np.ndarray, idx: np.ndarray, radius: float, rest:
         differs = ~repair & (originals[idx].view(np.uint32) != copies.view(np.uint32)).any(axis=1)
         rows = np.flatnonzero(differs)
         rows = rows[_shares_a_position(tree, idx[rows], radius)]
-        for row, near in zip(rows.tolist(), tree.query_ball_point(sub[rows], r=radius) if rows.size else []):
+        distinct, back = _once_per_position(sub[rows])
+        balls = tree.query_ball_point(distinct, r=radius) if rows.size else []  # a ball for each position (96a F5)
+        for row, near in zip(rows.tolist(), (balls[j] for j in back.tolist())):
             key = copies[row].tobytes()
             repair[row] = any(originals[c].tobytes() == key for c in near)
     return np.flatnonzero(repair)
@@ -557,7 +560,27 @@ def _shares_a_position(tree, idx: np.ndarray, radius: float) -> np.ndarray:
     """[R] bool: whether the originals `idx` [R] have another original within `radius`."""
     if tree.n < 2 or idx.size == 0:
         return np.zeros(idx.size, bool)
-    return tree.query(tree.data[idx], k=2)[0][:, 1] <= radius
+    distinct, back = _once_per_position(tree.data[idx])
+    return (tree.query(distinct, k=2)[0][:, 1] <= radius)[back]
+
+
+def _once_per_position(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the distinct rows of points [P, 3], [P] each row's among them) for k-d tree queries asked once for each position:
+    the tree keeps K identical points in one leaf and scans it whole for each query there, so K copies asking were
+    quadratic (round 96a F5: 64,000 copies of one position, 28 s). A hash of the rows' bits tells in one sort of P
+    integers that there are none alike, the common case; only then are the rows themselves sorted."""
+    points = np.ascontiguousarray(points, np.float64)
+    if len(points) < 2:
+        return points, np.arange(len(points))
+    bits = points.view(np.uint64)
+    mix = np.zeros(len(points), np.uint64)
+    for column, odd in zip(bits.T, (0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9)):
+        mix = (mix ^ column) * np.uint64(odd)  # uint64 arithmetic wraps: a hash, not a number
+    mix.sort()
+    if (mix[1:] != mix[:-1]).all():  # (np.unique took 2 s for 2M hashes, a sort 0.04)
+        return points, np.arange(len(points))
+    distinct, back = np.unique(points, axis=0, return_inverse=True)
+    return distinct, back.reshape(-1)
 
 
 def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, rest_keys: tuple[np.ndarray, np.ndarray] | None,
@@ -578,11 +601,12 @@ def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, re
     where = where.reshape(-1).tolist()
     balls = tree.query_ball_point(positions, r=radius)
     nears = [balls[j] for j in where]  # a row's ball: the list of its position's, not a copy
-    groups: dict[tuple[int, ...], list[int]] = {}
-    keys = [tuple(sorted(ball)) for ball in balls]
+    group_of: dict[tuple[int, ...], int] = {}  # a ball's group, its tuple hashed once for each position, not each row (a
+    group = [group_of.setdefault(tuple(sorted(ball)), len(group_of)) for ball in balls]  # tuple's hash is not kept)
+    groups: list[list[int]] = [[] for _ in group_of]
     for k, j in enumerate(where):
-        groups.setdefault(keys[j], []).append(k)
-    for near, members in groups.items():
+        groups[group[j]].append(k)
+    for near, members in zip(group_of, groups):
         free = [c for c in near if c not in taken]
         if len(free) < len(members):
             _pair_by_matching(shared, nears, fixed, idx)
