@@ -445,7 +445,10 @@ def project_points(
         v = fy * py / pz + cy
         det = a * c - b * b
         mid = 0.5 * (a + c)
-        radius = np.ceil(3.0 * math.sqrt(mid + math.sqrt(max(0.1, mid * mid - det))))
+        spread = mid * mid - det
+        if spread < 0.1:  # np.maximum(0.1, ·) as the reference takes it: a NaN (inf - inf, where det overflows) stays NaN
+            spread = 0.1  # and the Gaussian is counted non-finite (round 98f F1: max() made it 0.1, and it was drawn)
+        radius = np.ceil(3.0 * math.sqrt(mid + math.sqrt(spread)))
         if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(c) and math.isfinite(u) and math.isfinite(v) and math.isfinite(radius)):
             out_status[g] = NONFINITE
             continue

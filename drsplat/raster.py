@@ -740,6 +740,8 @@ def _check_args(topk: int, background) -> np.ndarray:
     bg = np.asarray(background, np.float64).reshape(-1)
     if bg.shape != (3,):
         raise ValueError(f"background must have 3 values, got {bg.shape[0]}")
+    if not np.isfinite(bg).all():  # it filled the colours with NaN / inf, uncounted (round 98f F2)
+        raise ValueError(f"background must be three finite values, got {bg.tolist()}")
     return bg
 
 
@@ -1023,6 +1025,7 @@ def rasterize_topk(
     if with_rgb or with_depth:
         raise ValueError("rasterize_topk computes ids, weights, alpha and the median only; use rasterize for rgb or depth")
     _check_args(topk, background)
+    check_near(near)
     _check_cpu("numba", device)
     projected = project_gaussians(scene, camera, near, mask=mask, out=None if out is None else out.projected)
     result = render_topk(projected, topk, with_median=with_median, ranked=ranked, out=out)
@@ -1223,6 +1226,15 @@ def prepare_for_engine(scene, engine: str = "numba", device: str = "cpu"):
     return get_engine(engine).prepare_fn()(scene, device)
 
 
+def check_near(near) -> None:
+    """ValueError unless `near` is a positive, finite camera depth (round 98f F2: near = -2 drew a Gaussian behind the
+    camera mirrored through its centre, near = 0 counted one at z = 0 non-finite; the command line and RegisterOptions
+    refuse them, the library took them)."""
+    plane = math.nan if isinstance(near, bool) or not isinstance(near, (int, float, np.number)) else float(near)
+    if not (math.isfinite(plane) and plane > 0):
+        raise ValueError(f"near: expected a positive, finite camera depth in scene units, got {near!r}")
+
+
 def rasterize(
     scene,
     camera: Camera,
@@ -1248,6 +1260,7 @@ def rasterize(
     ("cuda", "cuda:1") for the torch engine. Every engine returns the same RasterOutput (numpy) of
     camera.height x camera.width pixels; tests hold them to the reference (drsplat.testing).
     """
+    check_near(near)
     render = rasterize_numba if engine == "numba" else get_engine(engine).render_fn()
     return render(
         scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background, mask=mask,

@@ -362,7 +362,8 @@ def _project_source(
     v = fy * py / pz + cy
     det = a * c - b * b
     mid = 0.5 * (a + c)
-    radius = tl.ceil(3.0 * tl.sqrt(mid + tl.sqrt(tl.maximum(mid * mid - det, 0.1))))
+    spread = mid * mid - det
+    radius = tl.ceil(3.0 * tl.sqrt(mid + tl.sqrt(tl.where(spread < 0.1, 0.1, spread))))  # a NaN stays NaN, as np.maximum's
     # x - x is 0 exactly when x is finite (NaN for ±inf and NaN)
     finite = (a - a == 0.0) & (b - b == 0.0) & (c - c == 0.0) & (u - u == 0.0) & (v - v == 0.0) & (radius - radius == 0.0)
     x0 = tl.floor((u - 0.5 - radius) / TILE)

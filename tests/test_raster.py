@@ -784,3 +784,46 @@ def test_some_view_draws_is_its_reference_on_planes_through_the_scene(seed):
     assert raster.some_view_draws(means, iter(cams), 1e-6) == raster.some_view_draws(means, cams, 1e-6)  # cameras read once
     with pytest.raises(ValueError, match=r"shape \(500, 2\); expected \[N, 3\]"):  # 66c F2: read past each row, answered True
         raster.some_view_draws(means[:, :2], cams, 1e30)
+
+
+@pytest.mark.parametrize("turned", [False, True])
+def test_a_gaussian_whose_screen_determinant_overflows_is_counted_non_finite_by_every_engine(turned):
+    """Round 98f F1: a Gaussian of log-scale 88 1e-36 in front of the camera (near plane 1e-40) has a finite Σ' whose
+    det = ac - b² overflows: mid² - det = inf - inf is NaN, which numba's max(0.1, NaN) made 0.1, so numba (and the
+    registration's top-k path) drew it while the reference and the torch engine counted it non-finite; turned 45
+    degrees (det itself NaN) numba dropped it without counting it."""
+    from drsplat.cameras import Camera
+
+    s = np.sin(np.pi / 8) if turned else 0.0
+    scene = GaussianScene(means=np.array([[0, 0, 1e-36], [0, 0, 1]], np.float32),
+                          quats=np.array([[np.cos(np.pi / 8) if turned else 1.0, 0, 0, s]] * 2, np.float32),
+                          log_scales=np.array([[88, 87 if turned else 88, 88], [-3, -3, -3]], np.float32),
+                          opacity_logits=np.full(2, 3.0, np.float32), sh=np.full((2, 1, 3), 0.5, np.float32))
+    camera = Camera(R=np.eye(3), t=np.zeros(3), fx=3000.0, fy=3000.0, cx=16.0, cy=12.0, width=32, height=24)
+    for project in (raster.project_gaussians, raster.project_gaussians_reference):
+        projected = project(scene, camera, 1e-40)
+        assert projected.valid.tolist() == [False, True] and projected.num_nonfinite == 1, project.__name__
+    outs = [raster.rasterize(scene, camera, 4, near=1e-40, engine=engine, with_rgb=rgb)
+            for engine, rgb in (("numba", False), ("reference", False), ("torch", False), ("torch", True))]
+    assert all(o.num_nonfinite == 1 and (o.ids == outs[1].ids).all() for o in outs)
+    assert raster.rasterize_topk(scene, camera, 4, near=1e-40).num_nonfinite == 1
+
+
+def test_the_library_refuses_a_near_plane_or_background_it_cannot_render_with():
+    """Round 98f F2: rasterize(near=-2) drew a Gaussian behind the camera mirrored through its centre, near=0 counted
+    one at z = 0 non-finite, background=(nan, 0, inf) filled the colours with NaN and inf, none of it counted."""
+    from drsplat.cameras import Camera
+
+    scene = GaussianScene(means=np.array([[0, 0, -1], [0, 0, 1]], np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (2, 1)),
+                          log_scales=np.full((2, 3), -2, np.float32), opacity_logits=np.full(2, 3.0, np.float32),
+                          sh=np.full((2, 1, 3), 0.5, np.float32))
+    camera = Camera(R=np.eye(3), t=np.zeros(3), fx=30.0, fy=30.0, cx=16.0, cy=12.0, width=32, height=24)
+    for engine in ("numba", "reference", "torch"):
+        for near in (-2.0, 0.0, float("nan"), float("inf"), True):
+            with pytest.raises(ValueError, match="near: expected a positive, finite camera depth"):
+                raster.rasterize(scene, camera, 4, near=near, engine=engine)
+        with pytest.raises(ValueError, match=r"background must be three finite values, got \[nan, 0.0, inf\]"):
+            raster.rasterize(scene, camera, 4, with_rgb=True, background=(float("nan"), 0, float("inf")), engine=engine)
+    with pytest.raises(ValueError, match="near: expected a positive"):
+        raster.rasterize_topk(scene, camera, 4, near=-2.0)
+    assert (raster.rasterize(scene, camera, 4, near=0.5).ids[12, 16] == [1, -1, -1, -1]).all()  # the one in front only
