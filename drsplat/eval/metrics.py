@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numba
@@ -614,28 +614,42 @@ def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, re
         at: dict[int, list[int]] = {}  # the group's rows by position, each in row order
         for k in members:
             at.setdefault(where[k], []).append(k)
-        candidates = np.asarray(free, np.int64)
-        ranked, there = {}, {}
-        for j in at:
-            offsets = tree.data[candidates] - positions[j]
-            ranked[j] = candidates[np.lexsort((candidates, np.square(offsets).sum(axis=1)))].tolist()
-            there[j] = set(candidates[(offsets == 0).all(axis=1)].tolist())
+        candidates = np.asarray(sorted(free), np.int64)
+        places: dict[bytes, list[int]] = {}  # the free originals by their very position, in index order
+        for c, place in zip(candidates.tolist(), np.ascontiguousarray(tree.data[candidates], np.float64)):
+            places.setdefault(place.tobytes(), []).append(c)
+        there = {j: places.get(np.ascontiguousarray(positions[j], np.float64).tobytes(), []) for j in at}
+        nearest_first = _nearest_first(tree, candidates, positions)
         used: set[int] = set()
-        left = _pair_alike(at, ranked, there, shared, idx, rest_keys, used)
+        left = _pair_alike(at, nearest_first, there, shared, idx, rest_keys, used)
         for j, rows in left.items():
-            nearest = (c for c in ranked[j] if c not in used)
+            nearest = (c for c in nearest_first(j) if c not in used)
             for k in rows:
                 idx[shared[k]] = next(nearest)
                 used.add(int(idx[shared[k]]))
         taken.update(used)
 
 
-def _pair_alike(at: dict[int, list[int]], ranked: dict[int, list[int]], there: dict[int, set[int]], shared: np.ndarray,
-                idx: np.ndarray, rest_keys: tuple[np.ndarray, np.ndarray] | None, used: set[int]) -> dict[int, list[int]]:
+def _nearest_first(tree, candidates: np.ndarray, positions: np.ndarray) -> Callable[[int], list[int]]:
+    """position j -> the `candidates` (original indices, ascending) nearest `positions[j]` first, then by index; each
+    position's order made once, when first asked (the rows an exact copy pairs at its own position ask none)."""
+    made: dict[int, list[int]] = {}
+
+    def ranked(j: int) -> list[int]:
+        if j not in made:
+            distances = np.square(tree.data[candidates] - positions[j]).sum(axis=1)
+            made[j] = candidates[np.lexsort((candidates, distances))].tolist()
+        return made[j]
+    return ranked
+
+
+def _pair_alike(at: dict[int, list[int]], nearest_first: Callable[[int], list[int]], there: dict[int, list[int]],
+                shared: np.ndarray, idx: np.ndarray, rest_keys: tuple[np.ndarray, np.ndarray] | None,
+                used: set[int]) -> dict[int, list[int]]:
     """Pair, in place in `idx`, the rows of a co-located group (`at`: position -> rows) with free originals whose rest is
     the same bits: first those at the row's very position (`there`: an exact copy's own original, whichever position of
-    the group comes first), then the nearest to the row's position (`ranked`: position -> free originals, nearest first);
-    adds the originals taken to `used` and returns the rows left (position -> rows) to pair in row order."""
+    the group comes first), then the nearest to the row's position (`nearest_first`); adds the originals taken to `used`
+    and returns the rows left (position -> rows) to pair in row order."""
     if rest_keys is None:
         return at
     originals, copies = rest_keys
@@ -644,8 +658,8 @@ def _pair_alike(at: dict[int, list[int]], ranked: dict[int, list[int]], there: d
         still: dict[int, list[int]] = {}
         for j, rows in left.items():
             alike: dict[bytes, list[int]] = {}
-            for c in reversed(ranked[j]):  # each list nearest last, so pop() takes the nearest (O(K) a position)
-                if c not in used and (not exact or c in there[j]):
+            for c in reversed(there[j] if exact else nearest_first(j)):  # nearest last, so pop() takes the nearest (O(K))
+                if c not in used:
                     alike.setdefault(originals[c].tobytes(), []).append(c)
             for k in rows:
                 same = alike.get(copies[shared[k]].tobytes())
