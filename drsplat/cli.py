@@ -197,8 +197,9 @@ def sigterm_as_interrupt():
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
-    try:
+    previous = signal.getsignal(signal.SIGTERM)
+    try:  # installed inside: a SIGTERM just after the install raised before the restore was armed (round 99a F4)
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
         yield
     finally:
         pending = None

@@ -69,13 +69,16 @@ def stop_signals_held() -> Iterator[None]:
 
 def _put_back(handlers: dict) -> KeyboardInterrupt | None:
     """Set every handler of `handlers` (signal -> handler) again, each to the end, though the first one put back raises as
-    the next is (round 97a F2: a Ctrl-C then left SIGTERM held for good); returns such an interrupt for the caller."""
+    the next is (round 97a F2: a Ctrl-C then left SIGTERM held for good) or between the two (round 99a F3: the loop's
+    back-jump, where Python runs a pending handler, lay outside the try); returns such an interrupt for the caller."""
     pending = None
-    for signum, handler in handlers.items():
-        while True:
-            try:
+    left = list(handlers.items())
+    while left:
+        try:
+            while left:  # setting one again is harmless: the loop ends once every call has run uncut
+                signum, handler = left[0]
                 signal.signal(signum, handler)
-                break
-            except KeyboardInterrupt as exc:  # setting it again is harmless: the loop ends once one call is not cut
-                pending = exc
+                left.pop(0)
+        except KeyboardInterrupt as exc:
+            pending = exc
     return pending

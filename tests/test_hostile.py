@@ -3956,3 +3956,93 @@ def test_a_ctrl_c_as_sigterm_is_put_back_still_puts_it_back(monkeypatch):
         assert cut and signal.getsignal(signal.SIGTERM) is before
     finally:
         signal.signal(signal.SIGTERM, before)
+
+
+def test_a_ctrl_c_between_the_handlers_a_hold_puts_back_still_puts_back_the_next():
+    """Round 99a F3: `_put_back` set SIGINT's handler back, then a Ctrl-C run by Python at the loop's back-jump (outside
+    the try around each call) left SIGTERM the hold's for good. A trace raises the interrupt at the loop's head once
+    SIGINT's handler is back, where Python runs a pending handler."""
+    import contextlib
+    import inspect
+    import sys
+
+    from drsplat.stop_signals import stop_signals_held
+
+    code = inspect.getsource(sys.modules["drsplat.stop_signals"]).splitlines()
+    raised = []
+
+    def trace(frame, event, arg):
+        if frame.f_code.co_name != "_put_back":
+            return None
+
+        def lines(frame, event, arg):
+            head = code[frame.f_lineno - 1].strip()
+            if (event == "line" and not raised and head.startswith(("for ", "while "))
+                    and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+                raised.append(head)
+                raise KeyboardInterrupt
+            return lines
+        return lines
+
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # a pytest-xdist worker ignores SIGINT
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        with contextlib.suppress(KeyboardInterrupt):
+            sys.settrace(trace)
+            try:
+                with stop_signals_held():
+                    pass
+            finally:
+                sys.settrace(None)
+        after = signal.getsignal(signal.SIGTERM)
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
+    assert raised and after is signal.SIG_DFL
+
+
+def test_a_sigterm_as_sigterm_as_interrupt_installs_its_handler_leaves_the_callers(monkeypatch):
+    """Round 99a F4: a SIGTERM handled just after `sigterm_as_interrupt` installed its handler (outside its try) left
+    SIGTERM raising KeyboardInterrupt after main returned, in a program that called drsplat."""
+    from drsplat.cli import sigterm_as_interrupt
+
+    real = signal.signal
+
+    def install_then_sigterm(signum, handler):
+        previous = real(signum, handler)
+        if signum == signal.SIGTERM and handler is signal.default_int_handler:
+            raise KeyboardInterrupt  # the SIGTERM lands as the call returns
+        return previous
+
+    before = signal.getsignal(signal.SIGTERM)
+    try:
+        monkeypatch.setattr(signal, "signal", install_then_sigterm)
+        with pytest.raises(KeyboardInterrupt), sigterm_as_interrupt():
+            pass
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGTERM) is before
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+def test_a_near_plane_or_temperature_of_any_real_number_type_is_taken():
+    """Round 99a F5: `check_near` and the relevancy temperature took int / float / np.number only: a 0-d array, a torch
+    scalar or a Decimal was refused as "not a positive, finite depth" (they rendered before); True was a temperature."""
+    from decimal import Decimal
+
+    import torch
+
+    from drsplat.errors import DrsplatError
+    from drsplat.query import relevancy_from_scores
+    from drsplat.raster import check_near
+
+    for near in (np.array(0.01), torch.tensor(0.01), Decimal("0.01"), np.float32(0.01), 1):
+        check_near(near)
+    for bad in (np.array(-1.0), True, np.array([0.01, 0.02]), None):
+        with pytest.raises(ValueError, match="near: expected a positive, finite camera depth"):
+            check_near(bad)
+    scores = np.array([[0.3]], np.float32), np.array([[0.1]], np.float32)
+    assert relevancy_from_scores(*scores, temperature=np.array(10.0)) == relevancy_from_scores(*scores)
+    with pytest.raises(DrsplatError, match="relevancy temperature"):
+        relevancy_from_scores(*scores, temperature=True)

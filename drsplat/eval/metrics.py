@@ -567,20 +567,41 @@ def _shares_a_position(tree, idx: np.ndarray, radius: float) -> np.ndarray:
 def _once_per_position(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(the distinct rows of points [P, 3], [P] each row's among them) for k-d tree queries asked once for each position:
     the tree keeps K identical points in one leaf and scans it whole for each query there, so K copies asking were
-    quadratic (round 96a F5: 64,000 copies of one position, 28 s). A hash of the rows' bits tells in one sort of P
-    integers that there are none alike, the common case; only then are the rows themselves sorted."""
+    quadratic (round 96a F5: 64,000 copies of one position, 28 s). Rows are sorted by a hash of their bits (one argsort
+    of P integers); only the rows whose hash another row shares are compared bit for bit (np.unique over every row took
+    1-4 s for 2M, and real scenes hold a few exact clones, so a check for none alike before it seldom saved it: round
+    99a F1). Rows alike are those of the same bits (-0.0 and 0.0 are two positions, each asked once)."""
     points = np.ascontiguousarray(points, np.float64)
     if len(points) < 2:
         return points, np.arange(len(points))
+    rows = points.view(np.dtype((np.void, points.dtype.itemsize * points.shape[1]))).reshape(-1)
+    hashed = _row_hash(points)
+    order = np.argsort(hashed, kind="stable")
+    hashes = hashed[order]
+    starts = np.ones(len(points), bool)
+    starts[1:] = hashes[1:] != hashes[:-1]
+    if starts.all():
+        return points, np.arange(len(points))
+    run = np.cumsum(starts) - 1
+    hash_shared = np.zeros(len(points), bool)  # rows whose hash another row has: alike, or (seldom) a collision
+    hash_shared[order[np.bincount(run)[run] > 1]] = True
+    shared, alone = np.flatnonzero(hash_shared), np.flatnonzero(~hash_shared)
+    kinds, kind_of = np.unique(rows[shared], return_index=False, return_inverse=True)
+    back = np.empty(len(points), np.int64)
+    back[alone] = np.arange(len(alone))
+    back[shared] = len(alone) + kind_of.reshape(-1)
+    return np.concatenate([points[alone], kinds.view(np.float64).reshape(-1, points.shape[1])]), back
+
+
+def _row_hash(points: np.ndarray) -> np.ndarray:
+    """[P] uint64: a hash of the bits of each float64 row of points [P, 3], each column mixed in by an odd multiply and a shift (float32 values
+    widened to float64 leave the low 29 bits zero, which a multiply alone kept zero: 58 collisions in 2M rows)."""
     bits = points.view(np.uint64)
     mix = np.zeros(len(points), np.uint64)
     for column, odd in zip(bits.T, (0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9)):
         mix = (mix ^ column) * np.uint64(odd)  # uint64 arithmetic wraps: a hash, not a number
-    mix.sort()
-    if (mix[1:] != mix[:-1]).all():  # (np.unique took 2 s for 2M hashes, a sort 0.04)
-        return points, np.arange(len(points))
-    distinct, back = np.unique(points, axis=0, return_inverse=True)
-    return distinct, back.reshape(-1)
+        mix ^= mix >> np.uint64(29)
+    return mix
 
 
 def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, rest_keys: tuple[np.ndarray, np.ndarray] | None,
