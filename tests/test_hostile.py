@@ -3934,17 +3934,22 @@ def test_a_signal_as_outputs_together_begins_its_clean_up_still_cleans_up(tmp_pa
     np.testing.assert_array_equal(np.load(out), np.ones(3))  # the block had ended: the new output stands
 
 
-def test_a_ctrl_c_as_sigterm_is_put_back_still_puts_it_back(monkeypatch):
-    """Round 96a F11: a Ctrl-C as `sigterm_as_interrupt` put SIGTERM's handler back left it raising KeyboardInterrupt
-    for good in a program that called drsplat's main."""
+@pytest.mark.parametrize("lands", ["as SIGTERM's handler is put back", "as the handler is installed"])
+def test_a_signal_as_sigterm_as_interrupt_sets_a_handler_leaves_the_callers(monkeypatch, lands):
+    """Round 96a F11: a Ctrl-C as `sigterm_as_interrupt` put SIGTERM's handler back left it raising KeyboardInterrupt for
+    good in a program that called drsplat's main; round 99a F4: so did a SIGTERM handled just after it installed its
+    handler (outside its try)."""
     from drsplat.cli import sigterm_as_interrupt
 
     real, cut = signal.signal, []
 
     def cut_once(signum, handler):
-        if signum == signal.SIGTERM and handler is not signal.default_int_handler and not cut:
+        installing = handler is signal.default_int_handler
+        if signum == signal.SIGTERM and installing == (lands == "as the handler is installed") and not cut:
             cut.append(handler)
-            raise KeyboardInterrupt  # the Ctrl-C lands as the handler is put back
+            if installing:
+                real(signum, handler)  # the SIGTERM lands as the call returns
+            raise KeyboardInterrupt
         return real(signum, handler)
 
     before = signal.getsignal(signal.SIGTERM)
@@ -4000,30 +4005,6 @@ def test_a_ctrl_c_between_the_handlers_a_hold_puts_back_still_puts_back_the_next
         for sig, handler in before.items():
             signal.signal(sig, handler)
     assert raised and after is signal.SIG_DFL
-
-
-def test_a_sigterm_as_sigterm_as_interrupt_installs_its_handler_leaves_the_callers(monkeypatch):
-    """Round 99a F4: a SIGTERM handled just after `sigterm_as_interrupt` installed its handler (outside its try) left
-    SIGTERM raising KeyboardInterrupt after main returned, in a program that called drsplat."""
-    from drsplat.cli import sigterm_as_interrupt
-
-    real = signal.signal
-
-    def install_then_sigterm(signum, handler):
-        previous = real(signum, handler)
-        if signum == signal.SIGTERM and handler is signal.default_int_handler:
-            raise KeyboardInterrupt  # the SIGTERM lands as the call returns
-        return previous
-
-    before = signal.getsignal(signal.SIGTERM)
-    try:
-        monkeypatch.setattr(signal, "signal", install_then_sigterm)
-        with pytest.raises(KeyboardInterrupt), sigterm_as_interrupt():
-            pass
-        monkeypatch.undo()
-        assert signal.getsignal(signal.SIGTERM) is before
-    finally:
-        signal.signal(signal.SIGTERM, before)
 
 
 def test_a_near_plane_or_temperature_of_any_real_number_type_is_taken():
