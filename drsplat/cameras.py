@@ -2251,12 +2251,13 @@ def check_distortion(path: Path, camera: Camera, where: str) -> None:
                      "edge of the image file", field=name)
 
 
-def distorted_source(camera: Camera, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def distorted_source(camera: Camera, shape: tuple[int, int], rays: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """([H, W] u, [H, W] v): where each pinhole pixel centre of `camera` lies in an image file of `shape` (h, w)
     that holds its distorted picture, in the file's pixel indices (pixel i covers [i − ½, i + ½]): unprojected with
-    the pinhole intrinsics, distorted (`distort_normalized`), projected with the intrinsics rescaled to the file."""
+    the pinhole intrinsics, distorted (`distort_normalized`), projected with the intrinsics rescaled to the file.
+    rays: `pinhole_rays(camera)` where the caller has them."""
     sx, sy = shape[1] / camera.width, shape[0] / camera.height
-    d = distort_normalized(pinhole_rays(camera), camera.distortion)
+    d = distort_normalized(pinhole_rays(camera) if rays is None else rays, camera.distortion)
     return (d[..., 0] * camera.fx + camera.cx) * sx - 0.5, (d[..., 1] * camera.fy + camera.cy) * sy - 0.5
 
 
@@ -2299,12 +2300,13 @@ def unobserved_pixels(camera: Camera, file_size: tuple[int, int]) -> np.ndarray 
 def source_and_unobserved(camera: Camera, file_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(`distorted_source` in a file of `file_size` (w, h), `unobserved_pixels`) of a distorted camera, the source
     computed once: [H, W] u, v and the [H, W] bool pixels that lie outside the file or past the lens's fold."""
-    src_u, src_v = distorted_source(camera, (file_size[1], file_size[0]))
+    rays = pinhole_rays(camera)  # once for both
+    src_u, src_v = distorted_source(camera, (file_size[1], file_size[0]), rays)
     outside = ~((src_u >= -0.5) & (src_u <= file_size[0] - 0.5) & (src_v >= -0.5) & (src_v <= file_size[1] - 0.5))
-    return src_u, src_v, outside | beyond_the_fold(camera)
+    return src_u, src_v, outside | beyond_the_fold(camera, rays)
 
 
-def beyond_the_fold(camera: Camera) -> np.ndarray:
+def beyond_the_fold(camera: Camera, rays: np.ndarray | None = None) -> np.ndarray:
     """[H, W] bool: the pinhole pixels of `camera` past where its lens map (`distort_normalized`) folds back: past it the
     model sends farther pixels onto photo pixels that nearer pinhole pixels already show, so what is there was never
     seen. A wide lens that `check_distortion` accepts (120 degrees, k1 = -0.3) folds 61 % of its view so (round 97b F2:
@@ -2314,8 +2316,9 @@ def beyond_the_fold(camera: Camera) -> np.ndarray:
     first reaches 0 (r: the distance from the principal point over the focal length; `first_radial_fold`). With the
     tangential terms p1, p2 the fold is no circle (round 98a F3: it was looked for with k1, k2 only): a pixel is seen
     when it lies in the region around the principal point where the map's Jacobian determinant (`lens_jacobian_det`)
-    stays positive, its pixels 4-connected to the principal point's, inside that circle."""
-    rays = pinhole_rays(camera)
+    stays positive, its pixels 4-connected to the principal point's, inside that circle. rays: `pinhole_rays(camera)`
+    where the caller has them."""
+    rays = pinhole_rays(camera) if rays is None else rays
     fold = first_radial_fold(float(camera.distortion[0]), float(camera.distortion[1]))
     folded = np.square(rays).sum(axis=-1) >= fold if fold is not None else np.zeros((camera.height, camera.width), bool)
     if not np.any(camera.distortion[2:4]):

@@ -19,7 +19,7 @@ import threading
 
 from drsplat import __version__
 from drsplat.commands.common import ArgumentParser
-from drsplat.stop_signals import ignore_stop_signals
+from drsplat.stop_signals import ignore_stop_signals, put_back_handlers
 from drsplat.errors import INTERRUPTED_NOTE, STARTING_NOTE, Cancelled, DrsplatError, UsageError, and_list, escape_hidden, shown_path
 from drsplat.utils import describe_os_error, settled_outputs
 
@@ -202,13 +202,8 @@ def sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, signal.default_int_handler)
         yield
     finally:
-        pending = None
-        while True:  # a Ctrl-C as it is put back left SIGTERM raising KeyboardInterrupt after main returned (round 96a F11)
-            try:
-                signal.signal(signal.SIGTERM, previous)
-                break
-            except KeyboardInterrupt as exc:
-                pending = exc
+        # to the end though a Ctrl-C lands as it is put back: it was left raising KeyboardInterrupt after main returned
+        pending = put_back_handlers({signal.SIGTERM: previous})  # (round 96a F11)
         if pending is not None:
             raise pending
 

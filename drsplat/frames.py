@@ -81,7 +81,7 @@ from drsplat.defaults import DEFAULT_NEAR_PLANE, DEFAULT_PRINCIPAL_POINT, INRIA_
 from drsplat.errors import InputError
 from drsplat.raster import faint_share, median_seen_depth, near_band, prepare_scene, rasterize, share_in_some_view
 from drsplat.scene import counted
-from drsplat.utils import CancelToken, spread_rows
+from drsplat.utils import CancelToken, real_number, spread_rows
 
 log = logging.getLogger(__name__)
 
@@ -671,10 +671,7 @@ def given_near_plane(near_plane: float | str) -> float:
     """A near plane given as a number: a positive, finite depth in scene units, else one ValueError (round 67a F8: the
     Python API rendered principal-point views at -1, 0, NaN or inf, and "inria" was "could not convert string to float";
     the command line's own parser names its words)."""
-    try:
-        plane = math.nan if isinstance(near_plane, bool) else float(near_plane)
-    except (TypeError, ValueError, OverflowError):  # OverflowError: an int past float's range (round 68a F10)
-        plane = math.nan
+    plane = real_number(near_plane)
     if not (math.isfinite(plane) and plane > 0):
         raise ValueError(f"near_plane: expected \"auto\" or a positive, finite camera depth in scene units (0.01: gsplat's, 0.2: "
                          f"INRIA's), got {near_plane!r}")

@@ -23,7 +23,7 @@ from drsplat.defaults import MIN_NORM
 from drsplat.errors import DrsplatError, InputError
 from drsplat.features.modelid import CANONICAL_PHRASES, check_clip_weights, check_compatible
 from drsplat.lang import LanguageField, has_direction, undirected_rows_problem, unit_rows, unit_rows64
-from drsplat.utils import load_npy
+from drsplat.utils import load_npy, real_number
 
 log = logging.getLogger(__name__)
 
@@ -310,7 +310,7 @@ def relevancy_from_scores(positive: np.ndarray, negative: np.ndarray, temperatur
     (5M Gaussians, K = 30: 6.5 GB against cosine's 3.0; round 61b). t must be finite and positive: NaN scored every
     Gaussian NaN, a negative t turned the ranking over, t = 0 gave every Gaussian ½ (round 98c F2).
     """
-    if isinstance(temperature, (bool, np.bool_)) or not (math.isfinite(float(temperature)) and float(temperature) > 0):
+    if not (math.isfinite(real_number(temperature)) and real_number(temperature) > 0):
         raise DrsplatError(f"the relevancy temperature must be a finite positive number (LERF's is {RELEVANCY_TEMPERATURE}), got {temperature!r}")
     out = np.empty(positive.shape, np.float32)
     for lo in range(0, positive.shape[0], RELEVANCY_ROWS):

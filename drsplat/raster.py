@@ -37,7 +37,7 @@ from drsplat._sort_kernels import sort_by_key
 from drsplat.cameras import Camera
 from drsplat.scene import MAX_COORDINATE, MAX_LOG_SCALE, MAX_OPACITY_LOGIT, MAX_SH_COEFFICIENT, SH_C0, SH_COEFFICIENTS, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK, NEAR
-from drsplat.utils import compiled_here, spread_rows
+from drsplat.utils import compiled_here, real_number, spread_rows
 
 log = logging.getLogger(__name__)
 
@@ -1226,22 +1226,11 @@ def prepare_for_engine(scene, engine: str = "numba", device: str = "cpu"):
     return get_engine(engine).prepare_fn()(scene, device)
 
 
-def _real_number(value) -> float:
-    """float(value) for a number (a float, an int, a 0-d array, a torch scalar: round 99a F5), NaN for a bool or
-    anything float() cannot take."""
-    if isinstance(value, (bool, np.bool_)):
-        return math.nan
-    try:
-        return float(value)
-    except (TypeError, ValueError, OverflowError):
-        return math.nan
-
-
 def check_near(near) -> None:
     """ValueError unless `near` is a positive, finite camera depth (round 98f F2: near = -2 drew a Gaussian behind the
     camera mirrored through its centre, near = 0 counted one at z = 0 non-finite; the command line and RegisterOptions
     refuse them, the library took them)."""
-    plane = _real_number(near)
+    plane = real_number(near)
     if not (math.isfinite(plane) and plane > 0):
         raise ValueError(f"near: expected a positive, finite camera depth in scene units, got {near!r}")
 

@@ -60,14 +60,14 @@ def stop_signals_held() -> Iterator[None]:
             signal.signal(signum, lambda signum, _frame: held.append(signum))
         yield
     finally:
-        pending = _put_back(previous)
+        pending = put_back_handlers(previous)
         for signum in dict.fromkeys(held):
             signal.raise_signal(signum)
         if pending is not None:
             raise pending
 
 
-def _put_back(handlers: dict) -> KeyboardInterrupt | None:
+def put_back_handlers(handlers: dict) -> KeyboardInterrupt | None:
     """Set every handler of `handlers` (signal -> handler) again, each to the end, though the first one put back raises as
     the next is (round 97a F2: a Ctrl-C then left SIGTERM held for good) or between the two (round 99a F3: the loop's
     back-jump, where Python runs a pending handler, lay outside the try); returns such an interrupt for the caller."""

@@ -389,6 +389,18 @@ def _file_identity(path: Path) -> tuple[int, int] | None:
     return (st.st_ino, st.st_mtime_ns) if stat.S_ISREG(st.st_mode) else None
 
 
+def real_number(value: object) -> float:
+    """float(value) for a number a caller gives (a float, an int, a 0-d array, a torch scalar, a Decimal, "0.01"), NaN for
+    a bool or anything float() cannot take: what the checks of a near plane or a temperature judge (round 99a F5: a 0-d
+    array was refused as not positive)."""
+    if isinstance(value, (bool, np.bool_)):
+        return math.nan
+    try:
+        return float(value)
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int past float's range (round 68a F10)
+        return math.nan
+
+
 @contextlib.contextmanager
 def outputs_together(paths: Iterable[str | Path | None]) -> Iterator[None]:
     """A command's outputs written as one set: when the block fails after writing some of them, the

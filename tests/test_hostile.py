@@ -3964,7 +3964,7 @@ def test_a_signal_as_sigterm_as_interrupt_sets_a_handler_leaves_the_callers(monk
 
 
 def test_a_ctrl_c_between_the_handlers_a_hold_puts_back_still_puts_back_the_next():
-    """Round 99a F3: `_put_back` set SIGINT's handler back, then a Ctrl-C run by Python at the loop's back-jump (outside
+    """Round 99a F3: `put_back_handlers` set SIGINT's handler back, then a Ctrl-C run by Python at the loop's back-jump (outside
     the try around each call) left SIGTERM the hold's for good. A trace raises the interrupt at the loop's head once
     SIGINT's handler is back, where Python runs a pending handler."""
     import contextlib
@@ -3977,7 +3977,7 @@ def test_a_ctrl_c_between_the_handlers_a_hold_puts_back_still_puts_back_the_next
     raised = []
 
     def trace(frame, event, arg):
-        if frame.f_code.co_name != "_put_back":
+        if frame.f_code.co_name != "put_back_handlers":
             return None
 
         def lines(frame, event, arg):

@@ -618,8 +618,8 @@ def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, re
     even that leaves a row without one."""
     fixed = set(np.delete(idx, shared).tolist())  # the originals of the rows not paired again
     taken = set(fixed)
-    positions, where = np.unique(sub[shared], axis=0, return_inverse=True)
-    where = where.reshape(-1).tolist()
+    positions, where = _once_per_position(sub[shared])
+    where = where.tolist()
     balls = tree.query_ball_point(positions, r=radius)
     nears = [balls[j] for j in where]  # a row's ball: the list of its position's, not a copy
     group_of: dict[tuple[int, ...], int] = {}  # a ball's group, its tuple hashed once for each position, not each row (a
