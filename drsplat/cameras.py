@@ -2484,9 +2484,10 @@ def rgb_pixels(path: Path, im) -> np.ndarray:
     """[h, w, 3] uint8 of an open PIL image. 16-bit integer images (modes I;16*, and I holding
     0..65535) are scaled by 255/65535, float images (mode F) holding 0..1 by 255; other integer or
     float ranges are an InputError (Pillow's own conversion would clip them to white or black).
-    A 32-bit integer image (mode I) whose pixels all lie in 0..255 holds 8-bit values (a tool that
-    wrote them as int32): they are read as they are, with a warning, since read as 16-bit they
-    would be black (at most 1/257 of white); Pillow opens 16-bit PNG and TIFF as I;16."""
+    An integer image whose pixels all lie in 0..255 (not all 0) holds 8-bit values (a tool that
+    wrote them as int32, or an 8-bit array widened to uint16 and saved, which Pillow opens as I;16:
+    round 100c F4): they are read as they are, with a warning, since read as 16-bit they would be
+    black (at most 1/257 of white); Pillow opens 16-bit PNG and TIFF as I;16."""
 
     mode = im.mode
     if mode.startswith("I;16") or mode in ("I", "F"):
@@ -2501,8 +2502,9 @@ def rgb_pixels(path: Path, im) -> np.ndarray:
                 raise InputError(path, f"holds 32-bit integer pixels beyond 0..65535 (mode {mode}); save it as an 8- or 16-bit image",
                                  field="mode")
             scaled = values * (255.0 / 65535.0)
-            if mode == "I" and values.size and values.max() <= 255:
-                log.warning("%s: 32-bit integer pixels all within 0..255, read as 8-bit values (as 16-bit they would be black)", path)
+            if values.size and 0 < values.max() <= 255:
+                bits = "32-bit" if mode == "I" else "16-bit"
+                log.warning("%s: %s integer pixels all within 0..255, read as 8-bit values (as 16-bit they would be black)", path, bits)
                 scaled = values
         grey = np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
         return np.repeat(grey[..., None], 3, axis=2)

@@ -310,14 +310,15 @@ def relevancy_from_scores(positive: np.ndarray, negative: np.ndarray, temperatur
     (5M Gaussians, K = 30: 6.5 GB against cosine's 3.0; round 61b). t must be finite and positive: NaN scored every
     Gaussian NaN, a negative t turned the ranking over, t = 0 gave every Gaussian ½ (round 98c F2).
     """
-    if not (math.isfinite(real_number(temperature)) and real_number(temperature) > 0):
+    t = real_number(temperature)  # used as the check read it: a Decimal or "10" passed the check, then failed numpy's multiply (round 100a F4)
+    if not (math.isfinite(t) and t > 0):
         raise DrsplatError(f"the relevancy temperature must be a finite positive number (LERF's is {RELEVANCY_TEMPERATURE}), got {temperature!r}")
     out = np.empty(positive.shape, np.float32)
     for lo in range(0, positive.shape[0], RELEVANCY_ROWS):
         rows = slice(lo, lo + RELEVANCY_ROWS)
         p = positive[rows]
         hardest = negative[rows].max(axis=1, keepdims=True) if negative.shape[1] else np.full((p.shape[0], 1), -np.inf, np.float32)
-        z = temperature * (p.astype(np.float64) - hardest)
+        z = t * (p.astype(np.float64) - hardest)
         out[rows] = 0.5 * (1.0 + np.tanh(0.5 * z))
     return out
 

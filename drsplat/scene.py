@@ -1705,8 +1705,11 @@ def _decode_compressed(path: Path, data: dict[str, np.ndarray]) -> dict[str, np.
         shv = data["sh"]
         n_rest = len(shv.dtype.names)
         degree = next((d for d, cnt in SH_REST_COUNTS.items() if cnt == n_rest), None)
-        if degree is None or len(shv) != n:
-            raise _fail(path, f"is a compressed PLY whose 'sh' element has {n_rest} properties x {len(shv)} rows", field="sh")
+        if degree is None:  # round 100b F3: both problems read "has P properties x R rows", neither said what was wanted
+            counts = ", ".join(f"{c} (degree {d})" for d, c in SH_REST_COUNTS.items() if d)
+            raise _fail(path, f"is a compressed PLY whose 'sh' element has {n_rest} properties; it needs {counts}", field="sh")
+        if len(shv) != n:
+            raise _fail(path, f"is a compressed PLY whose 'sh' element has {len(shv):,} rows for {counted(n, 'splat', 'splats')} (needs one a splat)", field="sh")
         if any(f"f_rest_{i}" not in shv.dtype.names for i in range(n_rest)):
             raise _fail(path, f"is a compressed PLY whose 'sh' element does not name its properties f_rest_0..f_rest_{n_rest - 1}", field="sh")
         for i in range(n_rest):  # codes are bytes: a char or float column would be read as other values

@@ -705,8 +705,9 @@ def _read_ngsp_spz(path: Path, data: bytes) -> tuple[np.void, dict[str, bytes], 
     if toc < SPZ_HEADER.itemsize or toc_end > len(data):
         raise InputError(path, f"puts its table of contents at bytes {toc:,}-{toc_end:,} of a {len(data):,}-byte file", field="tocByteOffset")
     table = np.frombuffer(data[toc:toc_end], "<u8").reshape(count, 2)
-    if int(table[:, 0].sum()) != len(data) - toc_end:
-        raise InputError(path, f"lists {int(table[:, 0].sum()):,} bytes of streams but holds {len(data) - toc_end:,} after its table "
+    listed = sum(int(packed) for packed in table[:, 0])  # Python ints: numpy's uint64 sum wrapped two 2^63 sizes back to the true total (round 101a F1)
+    if listed != len(data) - toc_end:
+        raise InputError(path, f"lists {listed:,} bytes of streams but holds {len(data) - toc_end:,} after its table "
                                "of contents: truncated or damaged", field="toc")
     _check_ratio(path, sizes, len(data))
     blocks, at = {}, toc_end

@@ -561,8 +561,9 @@ def atomic_path(path: str | Path, cancel: CancelToken | None = None) -> Iterator
     except OSError as exc:
         raise naming_path(exc, shown, *([tmp_path] if tmp_path is not None else [])) from None
     finally:
-        if tmp_path is not None and tmp_path.exists():
-            tmp_path.unlink()
+        with stop_signals_held():  # a second Ctrl-C as the temp file was removed left it behind (round 100a F3)
+            if tmp_path is not None and tmp_path.exists():
+                tmp_path.unlink()
 
 
 FIFO_POLL_SECONDS = 0.1  # how often a FIFO output with no reader yet is tried again (and the cancel token read)
@@ -856,21 +857,22 @@ def name_problem(names: list[str]) -> tuple[int, str, object] | None:
 
 def checked_names(path: Path, names: list) -> list[str]:
     """The names as given, or one error naming the first entry that is not a string or that
-    `name_problem` refuses (the names label the printed table and the coloured PLY's legend: a list,
+    `name_problem` refuses, counted from 1 as the comma-separated flags' entries are (round 100b F5: "entry 1" was the
+    first label of --labels and the second name of a --names file) (the names label the printed table and the coloured PLY's legend: a list,
     a blank or a twice-used name would mislabel it)."""
     for i, name in enumerate(names):
         if not isinstance(name, str):
-            raise InputError(path, f"entry {i} is {json.dumps(name)[:60]}, not a string; expected a JSON list of label names")
+            raise InputError(path, f"entry {i + 1} of {len(names)} is {json.dumps(name)[:60]}, not a string; expected a JSON list of label names")
     problem = name_problem(names)
     if problem is not None:
         i, kind, detail = problem
         shown = json.dumps(names[i])[:60]
         if kind == "empty":
-            raise InputError(path, f"entry {i} is an empty name ({shown})")
+            raise InputError(path, f"entry {i + 1} of {len(names)} is an empty name ({shown})")
         if kind == "hidden":
-            raise InputError(path, f"entry {i} ({shown}) holds {detail}, which a terminal would not show as itself")
+            raise InputError(path, f"entry {i + 1} of {len(names)} ({shown}) holds {detail}, which a terminal would not show as itself")
         same = "" if names[i] == names[detail] else " (apart from spaces around it or how its accents are encoded)"
-        raise InputError(path, f"entry {i} repeats the name {shown} of entry {detail}{same}")
+        raise InputError(path, f"entry {i + 1} of {len(names)} repeats the name {shown} of entry {detail + 1}{same}")
     return names
 
 

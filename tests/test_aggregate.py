@@ -7,6 +7,7 @@ import dataclasses
 import zlib
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -511,6 +512,30 @@ def test_every_rejecting_mode_has_its_mode_without_the_rejection():
     assert without_rejection("fit-check-vote-reject") == "fit-check-vote" and without_rejection("reject") == "paper"
 
 
+def test_the_rejection_log_names_the_mode_that_keeps_this_runs_footprint(caplog):
+    """The rejection's log line names how to keep what it dropped. A fit mode's run keeps the
+    footprint it chose only under its resolved mode without the rejection: the asked mode without it
+    fits again, scoring the floaters it now keeps, and can choose the other footprint (round 100e F2:
+    `fit-check-vote` went back to the filtered footprint and lost a thin pole, IoU 0.833 -> 0.276)."""
+    import logging
+
+    from drsplat.registration.aggregate import Aggregator, mode_stages
+    from drsplat.registration.fit import FOOTPRINTS, is_fit_mode, resolve_mode
+    n = 4
+    scene = GaussianScene(means=np.zeros((n, 3), np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                          log_scales=np.full((n, 3), -3, np.float32), opacity_logits=np.zeros(n, np.float32), sh=np.zeros((n, 1, 3), np.float32))
+    for asked in [m for m in MODES if mode_stages(m).reject]:
+        for footprint in FOOTPRINTS if is_fit_mode(asked) else ("paper",):
+            mode = resolve_mode(asked, footprint)
+            caplog.clear()
+            with caplog.at_level(logging.INFO, logger="drsplat.registration.aggregate"):
+                Aggregator(mode, scene).log_rejected(asked)
+            named = caplog.records[-1].getMessage().split("--aggregate ")[1].split(" ")[0]
+            assert named in MODES and dataclasses.replace(mode_stages(mode), reject=False) == mode_stages(named), (asked, footprint)
+            if is_fit_mode(asked):
+                assert f"({asked[: -len('-reject')]} fits it again)" in caplog.records[-1].getMessage()
+
+
 def test_every_checking_mode_has_its_mode_without_the_check():
     """A check that drops a quarter of the masks or more names the same mode without the check
     (drsplat.registration.check.heavy_drop_warning), which must exist and differ in nothing else."""
@@ -720,7 +745,7 @@ def test_view_hook_survives_pickling(hard_tiny):
 
 
 @pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views", "binary header", "missing",
-                                    "compression method 99", "encrypted flag"])
+                                    "compression method 99", "encrypted flag", "another run's"])
 def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_path, damage, caplog):
     """A damaged or foreign `.aggregate.npz` beside the log: one warning, the run starts over and equals a
     fresh one (its headers are checked before anything is read, so a huge shape cannot allocate). The warning
@@ -748,6 +773,12 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
         np.savez(snapshot.open("wb"), **{**arrays, "views": np.int64(-3)})
     elif damage == "missing":
         snapshot.unlink()
+    elif damage == "another run's":  # round 100d F1: a --topk 20 run's snapshot copied over this one's was folded in
+        other, token = tmp_path / "other.log", CancelToken()
+        with pytest.raises(Cancelled):
+            register_features(scene, cams, hard_tiny / "features", RegisterOptions(topk=20, aggregate=REJECT), checkpoint=other, checkpoint_every=2,
+                              cancel=token, on_progress=lambda done, total: token.cancel() if done == 5 else None, show_progress=False)
+        shutil.copyfile(aggregate_stats_path(other), snapshot)
     elif damage in ("compression method 99", "encrypted flag"):  # round 91a F5: zipfile's NotImplementedError, RuntimeError
         raw = bytearray(snapshot.read_bytes())
         for signature, method_at, flags_at in ((b"PK\x03\x04", 8, 6), (b"PK\x01\x02", 10, 8)):  # local and central headers
@@ -782,6 +813,11 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
     if damage == "missing":
         assert [r.getMessage().split(": ", 1)[1] for r in caplog.records if "is missing" in r.getMessage()] == [
             f"its statistics snapshot {snapshot.name} is missing; its 5 views are redone"]
+        return
+    if damage == "another run's":
+        assert [r.getMessage() for r in caplog.records if "belongs to another run's log" in r.getMessage()] == [
+            f"{snapshot} belongs to another run's log (its key does not match the first 5 views of {ckpt.name}); the aggregation "
+            "statistics restart with the views"]
         return
     (message,) = [r.getMessage() for r in caplog.records if "aggregate.npz is unreadable" in r.getMessage()]
     assert message.isascii(), message

@@ -103,6 +103,16 @@ def test_eval_iou_pseudo_label_flags_without_a_cloud_are_usage_errors(registered
     assert all(f in err for f in named) and "--gt-points" in err and "Traceback" not in err
 
 
+def test_eval_iou_without_label_names_is_a_usage_error(registered, capsys):
+    """Round 100f F2: --gt-labels with --text-embeddings and no --label-names said "pass --label-names" and exited 1,
+    a failure's code; a flag left out is a usage error (2), as argparse's own are."""
+    r = registered
+    code = main(["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"),
+                 "--text-embeddings", str(r["ds"] / "text_embeddings.npy")])
+    err = capsys.readouterr().err
+    assert code == 2 and "pass --label-names" in err and "Traceback" not in err, err
+
+
 def test_eval_iou_reports_label_count_mismatch(registered, capsys):
     r = registered
     code = main(["eval", "iou", str(r["ply"]), "--gt-labels", str(r["ds"] / "gt" / "labels.npy"), *query_args(r)])
@@ -527,7 +537,7 @@ def test_eval_label_names_get_the_names_checks(registered, tmp_path, capsys, cha
             "--text-embeddings", str(r["ds"] / "text_embeddings.npy"), "--label-names", str(bad), "--json", str(js)]
     assert main(argv) == 1 and not js.exists()
     err = capsys.readouterr().err
-    assert "names.json" in err and f"entry {index} " in err and words in err, err
+    assert "names.json" in err and f"entry {index + 1} of {len(r['names'])} " in err and words in err, err
 
 
 def test_corruption_costs_compare_each_corruption_with_its_reference_room():

@@ -399,6 +399,53 @@ def test_match_gaussians_pairs_each_copy_with_its_own_position_and_rest_in_a_clu
     assert wrong == 0
 
 
+def test_the_nearest_free_original_is_found_without_ranking_the_group_for_each_position(monkeypatch):
+    """Round 100a F1: thousands of positions in one matching radius, two copies each with their rests rounded (none
+    alike, as in a .spz copy) took 25.5 s for 5,000 rows: every position ranked all the group's originals and walked
+    them in Python. A position of few rows now searches the free ones in numpy (no ranking made), and each copy still
+    takes an original at its own position."""
+    from drsplat.eval import metrics
+
+    rng = np.random.default_rng(11)
+    spots = rng.normal(size=(300, 3)) * 1e-7
+    means = np.vstack([np.repeat(spots, 2, axis=0), [[10.0, 10, 10]]])
+    rest = rng.normal(size=(len(means), 3)).astype(np.float32)
+    keep = np.sort(rng.choice(len(means) - 1, 450, replace=False)).tolist() + [len(means) - 1]
+    rankings = []
+    real_lexsort = np.lexsort
+    monkeypatch.setattr(metrics.np, "lexsort", lambda keys, *a, **k: (rankings.append(1), real_lexsort(keys, *a, **k))[1])
+    idx = metrics.match_gaussians(means, means[keep], original_rest=rest, subset_rest=np.round(rest[keep], 1))
+    monkeypatch.setattr(metrics.np, "lexsort", real_lexsort)
+    assert len(set(idx.tolist())) == len(idx) and (means[idx] == means[keep]).all() and not rankings, len(rankings)
+
+
+@pytest.mark.parametrize("rows_at_a_position", [1, 3, 40])
+def test_nearest_free_agrees_with_a_brute_force_search(rows_at_a_position):
+    """`_NearestFree` (a search for positions of few rows, a ranking walked once for those of many) against a brute
+    force: the nearest free original to the position (of the asked rest), ties to the lower index, each taken once."""
+    from drsplat.eval.metrics import _NearestFree
+
+    rng = np.random.default_rng(rows_at_a_position)
+    for _ in range(30):
+        k = int(rng.integers(5, 80))
+        candidates = np.sort(rng.choice(200, k, replace=False))
+        grid = rng.integers(0, 4, (k, 3)).astype(np.float64)  # a coarse grid: many equal distances, ties by index
+        originals = np.zeros((200, 2), np.float32)
+        originals[candidates] = rng.integers(0, 3, (k, 2))
+        positions = rng.integers(0, 4, (5, 3)).astype(np.float64)
+        at = {j: list(range(rows_at_a_position)) for j in range(5)}
+        picker, free = _NearestFree(grid, candidates, positions, at), set(candidates.tolist())
+        for _ in range(min(k, 5 * rows_at_a_position)):
+            j = int(rng.integers(0, 5))
+            key = rng.integers(0, 3, 2).astype(np.float32) if rng.random() < 0.5 else None
+            pool = [c for c in sorted(free) if key is None or (originals[c] == key).all()]
+            d = [float(np.square(grid[np.searchsorted(candidates, c)] - positions[j]).sum()) for c in pool]
+            want = pool[int(np.argmin(d))] if pool else None
+            got = picker.take(j) if key is None else picker.take_alike(j, key.tobytes(), originals)
+            assert got == want, (j, key, got, want)
+            free.discard(want)
+
+
 def test_positions_asked_once_give_every_row_its_own_answer():
     """Round 96a F5: the k-d tree was asked once for each of K copies of one position (its leaf of K identical points
     scanned whole each time) and the copies' group key, a K-tuple, hashed for each: 64,000 copies took 21-28 s (0.6 s

@@ -105,6 +105,38 @@ def test_two_feature_files_of_one_name_in_nfc_pair_with_neither_and_are_named(tm
     assert "has 2 feature files of its name in different Unicode encodings" in caplog.text and ascii(spellings[0] + "_s.npy") in caplog.text
 
 
+def test_mask_files_of_another_number_of_levels_than_langsplats_four_are_warned_of(tiny, tmp_path, caplog):
+    """Round 100c F1: a folder of 3-level files registered its second level (m of s, m, l) as LangSplat's 's', and a
+    folder mixing 3- and 4-level files one view's s masks beside another's m, without a word. `--level` picks each
+    file's level by index, which is said, once, whenever the files of several levels are not all of four."""
+    scene, options = load_ply(tiny / "scene.ply"), RegisterOptions(aggregate="paper", level=1)
+    four = cameras([(40, 30)] * 3)
+    write_maps(tmp_path, four, [(4, 30, 40)] * 3)
+    with caplog.at_level(logging.WARNING, logger=WARN):
+        prepare_run(scene, four, tmp_path / ".", options)
+    assert not warnings_of(caplog)
+    three = cameras([(40, 30)] * 2, prefix="t", first=3)
+    write_maps(tmp_path, three, [(3, 30, 40)] * 2, seed=1)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger=WARN):
+        prepare_run(scene, four + three, tmp_path, options)
+    said = warnings_of(caplog)
+    assert said == ["the views' mask files have different numbers of levels (2 views 3, 3 views 4): level 1 is each file's level 1 by "
+                    "index, a different mask scale in files of another layout (LangSplat's 's' only in files of 4 levels); remake the "
+                    "features so every view has the same levels"], said
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger=WARN):
+        prepare_run(scene, three, tmp_path, options)
+    said = [m for m in warnings_of(caplog) if "match no camera" not in m]  # the four-level files left in the folder are named too
+    assert said == ["the 2 views' mask files have 3 levels, not LangSplat's 4 (default, s, m, l): level 1 is read as each file's level 1 "
+                    "by index, whatever mask scale it holds there (LangSplat's 's' only in files of 4 levels)"], said
+    write_maps(tmp_path, three, [(30, 40)] * 2, seed=2)  # single-level files beside four-level ones are single_level_note's
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger=WARN):
+        prepare_run(scene, four + three, tmp_path, options)
+    assert len(warnings_of(caplog)) == 1 and "have one level" in warnings_of(caplog)[0]
+
+
 # F3: mask maps far coarser than their camera
 
 def test_mask_maps_far_coarser_than_their_camera_are_warned_of_once_and_halves_to_eighths_are_not(tiny, tmp_path, caplog):

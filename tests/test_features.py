@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drsplat.cameras import load_cameras, write_transforms_json
+from drsplat.cameras import Camera, load_cameras, write_transforms_json
 from drsplat.cli import main
 from drsplat.errors import DrsplatError
 from drsplat.features import format as featurefiles
@@ -294,7 +294,7 @@ def test_sam_flags_given_with_other_masks_are_said(tmp_path, weights, capsys):
     assert main(args) == 0 and "apply to --masks sam" not in capsys.readouterr().err
 
 
-def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights):
+def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights, capsys):
     """Was (a probe, 2026-12-01): the stamps were written when a run finished, so the pairs of a run
     stopped by an unreadable image (or Ctrl-C, or a kill) had none; the next run kept them as complete
     and stamped them with the images as they were then, so an image re-exported in between kept its
@@ -317,6 +317,9 @@ def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights):
     out = tmp_path / "features"
     args = slic_features_argv(src, out, weights, quiet=True)
     assert main(args) == 1 and featurefiles.is_valid_pair(out, "a") and (out / STAMP_JOURNAL).exists()
+    # round 100c F3: the stop said only the file's error; a Ctrl-C's line says the finished images are kept
+    err = capsys.readouterr().err
+    assert "b.png" in err and f"the images finished before it (1) are kept in {out}, and the same command resumes from them" in err, err
     first = np.load(featurefiles.feat_path(out, "a"))
     gradient = Image.fromarray(np.tile(np.linspace(0, 255, 64).astype(np.uint8)[None, :, None], (48, 1, 3)))
     gradient.save(src / "images" / "a.png")  # re-exported while fixing b
@@ -457,6 +460,13 @@ def test_load_image_reads_8_bit_values_stored_as_32_bit_integers_as_8_bit_and_sa
         rgb = load_image(cam)
     assert np.array_equal(rgb[..., 1], ramp.astype(np.uint8))
     assert any("view.tif" in r.getMessage() and "read as 8-bit values" in r.getMessage() for r in caplog.records)
+    # round 100c F4: an 8-bit array widened to uint16 and saved as PNG (Pillow's I;16) was read as 0s and 1s, no word
+    caplog.clear()
+    cam = load_cameras(_one_camera_dataset(tmp_path / "u16", Image.fromarray(ramp.astype(np.uint16))))[0]
+    with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
+        rgb = load_image(cam)
+    assert np.array_equal(rgb[..., 1], ramp.astype(np.uint8))
+    assert any("view.png" in r.getMessage() and "16-bit integer pixels all within 0..255" in r.getMessage() for r in caplog.records)
 
 
 def test_load_image_refuses_an_image_of_another_aspect_and_names_exif_rotation(tmp_path):
@@ -773,6 +783,19 @@ def test_an_image_name_with_a_control_character_is_refused_and_paths_print_escap
         load_cameras(tmp_path, require_images=False)
     message = str(InputError(tmp_path / "x\nERROR: forged.png", "is not a readable image"))
     assert "\n" not in message and '"' in message and "\\nERROR: forged.png" in message
+
+
+def test_an_image_a_power_of_two_of_its_cameras_size_is_not_taken_for_an_undistorted_pairs_photo():
+    """Round 100c F2: a photo of exactly twice its camera's size (full-resolution photos beside the cameras of an
+    images_2 copy) was said to be "neither its camera's size nor a power-of-two fraction of it", the signature of the
+    photos from before `colmap image_undistorter`, which differ from their cameras by a few percent."""
+    from drsplat.features.extract import off_power_of_two
+
+    cam = Camera(R=np.eye(3), t=np.zeros(3), fx=50.0, fy=50.0, cx=32.0, cy=24.0, width=64, height=48, name="view")
+    for size in [(64, 48), (32, 24), (16, 12), (2, 1), (128, 96), (256, 192), (129, 97), (2048, 1536)]:
+        assert not off_power_of_two(size, cam), size
+    for size in [(66, 49), (130, 99), (96, 72), (4096, 3072), (60, 48)]:
+        assert off_power_of_two(size, cam), size
 
 
 def test_features_says_which_images_gave_nothing_useful(tmp_path, weights, capsys):

@@ -216,7 +216,11 @@ def test_training_a_codebook_on_few_distinct_embeddings_warns(caplog):
     x, _, _ = clip_like(600, 32, labels=4, seed=1)
     with caplog.at_level(logging.WARNING, logger="drsplat.lang.codebook"):
         train_codebook(np.repeat(x[:3], 100, axis=0), m=8)
-    assert "only 3 of the 300 training embeddings are distinct" in caplog.text
+    assert "only 3 of the 300 training embeddings are distinct" in caplog.text and "these 3 directions" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="drsplat.lang.codebook"):  # round 100b F4: "1 ... are distinct ... these 1 directions"
+        train_codebook(np.repeat(x[:1], 3000, axis=0), m=8)
+    assert "only 1 of the 3,000 training embeddings is distinct" in caplog.text and "reconstructs this one direction" in caplog.text, caplog.text
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="drsplat.lang.codebook"):
         train_codebook(x, m=8)

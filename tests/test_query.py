@@ -1271,3 +1271,7 @@ def test_segment_without_labels_and_relevancy_at_a_bad_temperature_are_refused()
         with pytest.raises(DrsplatError, match=r"relevancy temperature must be a finite positive number \(LERF's is 10.0\)"):
             relevancy(field, query, negatives, temperature=bad)
     np.testing.assert_allclose(relevancy(field, query, negatives, temperature=10.0)[:, 0], [1 / (1 + np.exp(-10)), 0.5, 0.5], rtol=1e-6)
+    from decimal import Decimal  # round 100a F4: passed the check, then numpy's multiply raised UFuncTypeError / TypeError
+
+    for given in (Decimal("10"), "10", np.float32(10), np.array(10.0)):
+        assert np.array_equal(relevancy(field, query, negatives, temperature=given), relevancy(field, query, negatives, temperature=10.0))

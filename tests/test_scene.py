@@ -460,6 +460,24 @@ def test_compressed_ply_with_sh_end_codes_loads_to_plus_minus_four(tmp_path):
     np.testing.assert_array_equal(rest, np.array([-4, 4, -4, 4, -4, 4, 0.015625, -3.953125, 3.953125], np.float32))
 
 
+@pytest.mark.parametrize("props, rows, words", [(10, 1, "'sh' element has 10 properties; it needs 9 (degree 1), 24 (degree 2), 45 (degree 3)"),
+                                                 (9, 2, "'sh' element has 2 rows for 1 splat (needs one a splat)")])
+def test_a_compressed_plys_sh_element_of_the_wrong_size_is_told_what_it_needs(tmp_path, props, rows, words):
+    """Round 100b F3: an 'sh' element of a count no SH degree has, or of another row count than the splats, was told
+    only "has P properties x R rows", not what was wrong or wanted."""
+    chunk_props = [f"{k}_{a}" for k in ("min", "max") for a in "xyz"] + [f"{k}_scale_{a}" for k in ("min", "max") for a in "xyz"]
+    lines = ["ply", "format binary_little_endian 1.0", "element chunk 1"] + [f"property float {p}" for p in chunk_props]
+    lines += ["element vertex 1"] + [f"property uint packed_{p}" for p in ("position", "rotation", "scale", "color")]
+    lines += [f"element sh {rows}"] + [f"property uchar f_rest_{i}" for i in range(props)] + ["end_header"]
+    chunk = np.array([0, 0, 0, 1, 1, 1, -1, -1, -1, 1, 1, 1], "<f4").tobytes()
+    vertex = np.array([0, (511 << 20) | (511 << 10) | 511, 0, 0xFFFFFF80], "<u4").tobytes()
+    path = tmp_path / "c.ply"
+    path.write_bytes(("\n".join(lines) + "\n").encode() + chunk + vertex + bytes(props * rows))
+    with pytest.raises(InputError, match="field 'sh'") as info:
+        load_ply_report(path)
+    assert words in str(info.value) and "c.ply" in str(info.value), str(info.value)
+
+
 @pytest.mark.parametrize("case", ["float16_base", "uint16_base", "reversed", "gaps", "mixed", "fortran", "one_column", "taller_base",
                                   "bytes_base"])
 def test_vertices_from_column_views_equal_those_from_separate_columns(case):

@@ -483,6 +483,12 @@ def spz_cases(scene: GaussianScene) -> dict[str, tuple[bytes, str]]:
         fields.update(changes)
         return struct.pack("<IIIBBBBI", *fields.values()) + v4[20:]
 
+    def toc_sizes_past_2_to_the_63():  # round 101a F1: two sizes + 2^63 summed, in uint64, to the true total
+        raw = bytearray(v4)
+        for i in (0, 1):
+            struct.pack_into("<Q", raw, toc + 16 * i, struct.unpack_from("<Q", raw, toc + 16 * i)[0] + 2**63)
+        return bytes(raw)
+
     return {
         "truncated gzip": (v3[: len(v3) // 2], "truncated"),
         "gzip of something else": (gzip.compress(b"hello world, not a splat"), "without the spz header"),
@@ -500,6 +506,7 @@ def spz_cases(scene: GaussianScene) -> dict[str, tuple[bytes, str]]:
         "v4 shorter than a header": (v4[:20], "shorter than the 32-byte"),
         "v4 damaged stream": (v4[: toc + 16 * 6 + 4] + b"\x00" * 8 + v4[toc + 16 * 6 + 12:], "positions"),
         "v4 with a version-3 number": (header4(version=3), "versions 1-3 are gzip"),
+        "v4 stream sizes past 2^63": (toc_sizes_past_2_to_the_63(), "bytes of streams but holds"),
         "extension record cut": (gzip.compress(body3[:14] + bytes([2]) + body3[15:] + struct.pack("<II", 0x1234, 99) + b"ab"), "past the end"),
         "rotated frame": (encode_spz(scene, 3, extensions=extension_record(COORDINATE_EXTENSION, struct.pack("<I", 12))), "rotated frame"),
     }

@@ -209,8 +209,11 @@ def test_label_names_that_differ_only_in_how_accents_are_encoded_are_one_name(tm
     from drsplat.errors import InputError
     from drsplat.utils import checked_names
 
-    with pytest.raises(InputError, match=r"entry 1 repeats the name .* of entry 0 \(apart from spaces around it or how its accents"):
+    with pytest.raises(InputError, match=r"entry 2 of 2 repeats the name .* of entry 1 \(apart from spaces around it or how its accents"):
         checked_names(tmp_path / "names.json", ["caf\u00e9", "cafe\u0301"])
+    # round 100b F5: counted from 0 here and from 1 in --labels, "entry 1" was the second name and the first label
+    with pytest.raises(InputError, match=r"entry 1 of 3 is an empty name"):
+        checked_names(tmp_path / "names.json", ["", "b", "c"])
     assert checked_names(tmp_path / "names.json", ["caf\u00e9", "cafe"]) == ["caf\u00e9", "cafe"]
 
 

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 from drsplat.commands.common import int_range, nonneg_int, ray_address, resolution_value, text_value
-from drsplat.errors import INTERRUPTED_NOTE, RESUMABLE_NOTE, OutputError
+from drsplat.errors import INTERRUPTED_NOTE, RESUMABLE_NOTE, DrsplatError, InputError, OutputError, shown_path
 from drsplat.features.masks import GENERATORS
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED
 from drsplat.features.weights import SAM_URLS
@@ -60,10 +62,32 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None) -> str:
     """What an interrupted run's last line adds: that the same command resumes, when the output
     folder holds finished images (pairs are written atomically: only whole ones are there)."""
+    kept = finished_images(args.out) > 0
+    return RESUMABLE_NOTE if kept else f"{INTERRUPTED_NOTE}; no image was finished"
+
+
+def finished_images(out: Path) -> int:
+    """How many images' pairs the features folder `out` holds (pairs are written atomically: only whole ones are there)."""
     from drsplat.features.format import FEAT_SUFFIX
 
-    kept = args.out.is_dir() and any(args.out.glob(f"*{FEAT_SUFFIX}"))
-    return RESUMABLE_NOTE if kept else f"{INTERRUPTED_NOTE}; no image was finished"
+    return sum(1 for _ in out.glob(f"*{FEAT_SUFFIX}")) if out.is_dir() else 0
+
+
+@contextlib.contextmanager
+def finished_images_said(out: Path, cameras) -> Iterator[None]:
+    """An image that stops the extraction (unreadable, or not its camera's aspect) says, as an interrupt's line does,
+    that the images finished before it are kept and the same command resumes from them (round 100c F3: only the
+    file's error was said, though with SAM on a CPU each finished image is minutes of work). Other errors (a folder
+    of another model's features, which no rerun resumes) are left as they are."""
+    images = {cam.image_path for cam in cameras if cam.image_path is not None}
+    try:
+        yield
+    except InputError as exc:
+        kept = finished_images(out) if exc.path in images else 0
+        if not kept:
+            raise
+        raise DrsplatError(f"{exc}; the images finished before it ({kept:,}) are kept in {shown_path(out)}, and the same command "
+                           "resumes from them") from exc
 
 
 def refuse_image_folder(out: Path, cameras) -> None:
@@ -109,13 +133,15 @@ def run(args: argparse.Namespace) -> int:
         from drsplat.features.ray import extract_features_ray
 
         log.info("%d images from %s; masks %s; CLIP %s on Ray workers", len(cameras), args.source, args.masks, spec.clip_model)
-        report = extract_features_ray(cameras, args.out, spec, address=args.ray, workers=args.ray_workers, resolution=args.resolution,
-                                      max_height=args.max_height or None, manifest_extra=extra, show_progress=not args.no_progress)
+        with finished_images_said(args.out, cameras):
+            report = extract_features_ray(cameras, args.out, spec, address=args.ray, workers=args.ray_workers, resolution=args.resolution,
+                                          max_height=args.max_height or None, manifest_extra=extra, show_progress=not args.no_progress)
     else:
         generator, encoder = build_models(spec)
         manifest = make_manifest(generator, encoder, spec.nms, args.resolution, args.max_height or None, extra)
         log.info("%d images from %s; masks %s; CLIP %s on %s", len(cameras), args.source, args.masks, encoder.model_id, encoder.device)
-        report = extract_features(cameras, args.out, generator, encoder, spec.nms, manifest, show_progress=not args.no_progress)
+        with finished_images_said(args.out, cameras):
+            report = extract_features(cameras, args.out, generator, encoder, spec.nms, manifest, show_progress=not args.no_progress)
     n = len(report.written)
     per = report.times
     log.info(  # the masks counted are those of the images written now (round 57c: a complete folder's rerun read as "no masks")

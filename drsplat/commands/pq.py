@@ -210,7 +210,8 @@ def run_train(args: argparse.Namespace) -> int:
     book = train_codebook(x, m=args.m, seed=args.seed, show_progress=sys.stderr.isatty())  # a minute or more: shown (round 68a F13)
     with outputs_together([args.out]):  # settled: an interrupt after it names it (round 96a F6)
         book.save(args.out)
-    print(f"wrote {shown_path(args.out)}: pq d={book.dim} M={book.m} x 8 bits, {book.m} bytes per Gaussian, trained on {x.shape[0]} embeddings")
+    # logged as every command's "wrote" line: printed, it went into the codebook's bytes with `--out /dev/stdout | ...` and past -q (round 100f F1)
+    log.info("wrote %s: pq d=%d M=%d x 8 bits, %d bytes per Gaussian, trained on %d embeddings", shown_path(args.out), book.dim, book.m, book.m, x.shape[0])
     return 0
 
 

@@ -44,7 +44,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--text", action="append", metavar="PHRASE", help="text query (repeat for several); needs CLIP weights")
     source.add_argument("--embedding", type=Path, action=common.Once, metavar="Q.npy", help="query embedding(s), (D,) or (K, D)")
-    source.add_argument("--gaussians", type=Path, action=common.Once, metavar="IDS.npy", help="Gaussian indices (or a boolean mask): query = mean of their features (a set: a repeated id counts once)")
+    source.add_argument("--gaussians", type=Path, action=common.Once, metavar="IDS.npy", help="Gaussian indices (or a boolean mask): query = mean of their unit features (a set: a repeated id counts once)")
     parser.add_argument("--relevancy", action="store_true", help="LERF relevancy against canonical negatives instead of cosine")
     add_lut_bits_argument(parser)
     parser.add_argument("--negatives", metavar="A,B", help="extra negative phrases for --relevancy (comma-separated)")

@@ -41,7 +41,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="argmax segmentation of a registered PLY over a label list",
         description=(
             "Label every Gaussian with the label of highest cosine similarity. LABELS.npy is int32 (N,) in file "
-            "order: the label index, -1 for background, unassigned Gaussians and scores below --min-score."
+            "order: the label index, -1 for background, unassigned Gaussians and scores below --min-score. An exact tie "
+            "goes to the earlier label, and a tie with --background to the label."
         ),
     )
     parser.add_argument("registered", type=Path, metavar="REGISTERED.ply", help="PLY written by drsplat register")

@@ -37,7 +37,7 @@ import numpy as np
 
 from drsplat.cameras import EXIF_ROTATED, FRAMING_TOLERANCE, exif_orientation, header_size, same_aspect
 from drsplat.cameras import load_scannet_cameras  # noqa: F401  (the ScanNet camera reader lives with the others)
-from drsplat.errors import DrsplatError, InputError, hidden_character
+from drsplat.errors import DrsplatError, InputError, UsageError, hidden_character
 from drsplat.eval.polyfill import fill_polygon, truncate_vertices
 from drsplat.scene import check_element_sizes, read_ply_header, read_plyfile, trailing_ascii_lines, trailing_bytes
 from drsplat.utils import atomic_path, checked_names, clipped, load_npy, read_json, regular_file
@@ -629,7 +629,7 @@ def load_label_names(path: Path | None, default: list[str] | None = None) -> lis
     characters, none twice), or `default` when no path is given (an error when there is none)."""
     if path is None:
         if default is None:
-            raise DrsplatError("label names are needed: pass --label-names NAMES.json")
+            raise UsageError("label names are needed: pass --label-names NAMES.json")  # a flag left out: exit 2 (round 100f F2)
         return list(default)
     names = read_json(path, "a JSON list of label names")
     if not isinstance(names, list) or not names:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numba
@@ -611,8 +611,9 @@ def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, re
     rest is theirs (`rest_keys`: originals', copy's; `_pair_alike`), then the others in row order, each row the nearest
     free one to its own position, then in row order (round 60a: the first in row order took a distinct Gaussian 3e-5 away
     before the exact copy; round 98a F1: ranked by the distance to the group's first row, a row at another position of
-    the group took that position's originals, and a copy then one of another rest); each group in O(K log K) for each of
-    its distinct positions, its ball found once for each (round 60c: row by row, 10,000 copies of one position took 92 s;
+    the group took that position's originals, and a copy then one of another rest); each group's nearest free originals
+    by `_NearestFree` (O(K) a row in numpy, or one O(K log K) ranking for a position of many rows), its ball found once
+    for each (round 60c: row by row, 10,000 copies of one position took 92 s;
     round 96a F5: a ball and its sort for each of K copies, quadratic). When a group finds too few free originals, a
     maximum bipartite matching of every shared row decides (row by row, one valid pairing was refused); ValueError when
     even that leaves a row without one."""
@@ -640,58 +641,112 @@ def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, re
         for c, place in zip(candidates.tolist(), np.ascontiguousarray(tree.data[candidates], np.float64)):
             places.setdefault(place.tobytes(), []).append(c)
         there = {j: places.get(np.ascontiguousarray(positions[j], np.float64).tobytes(), []) for j in at}
-        nearest_first = _nearest_first(tree, candidates, positions)
-        used: set[int] = set()
-        left = _pair_alike(at, nearest_first, there, shared, idx, rest_keys, used)
+        picker = _NearestFree(np.ascontiguousarray(tree.data[candidates], np.float64), candidates, positions, at)
+        left = _pair_alike(at, picker, there, shared, idx, rest_keys)
         for j, rows in left.items():
-            nearest = (c for c in nearest_first(j) if c not in used)
             for k in rows:
-                idx[shared[k]] = next(nearest)
-                used.add(int(idx[shared[k]]))
-        taken.update(used)
+                idx[shared[k]] = picker.take(j)
+        taken.update(picker.used)
 
 
-def _nearest_first(tree, candidates: np.ndarray, positions: np.ndarray) -> Callable[[int], list[int]]:
-    """position j -> the `candidates` (original indices, ascending) nearest `positions[j]` first, then by index; each
-    position's order made once, when first asked (the rows an exact copy pairs at its own position ask none)."""
-    made: dict[int, list[int]] = {}
-
-    def ranked(j: int) -> list[int]:
-        if j not in made:
-            distances = np.square(tree.data[candidates] - positions[j]).sum(axis=1)
-            made[j] = candidates[np.lexsort((candidates, distances))].tolist()
-        return made[j]
-    return ranked
+NEAREST_SORT_ROWS = 32  # a position with this many rows to pair ranks its group's originals once (O(K log K)) instead of
+# searching them for each row (O(K) each, in numpy)
 
 
-def _pair_alike(at: dict[int, list[int]], nearest_first: Callable[[int], list[int]], there: dict[int, list[int]],
-                shared: np.ndarray, idx: np.ndarray, rest_keys: tuple[np.ndarray, np.ndarray] | None,
-                used: set[int]) -> dict[int, list[int]]:
+class _NearestFree:
+    """The free originals of one co-located group (`candidates` [K], ascending, at `points` [K, 3]) for its rows at
+    `positions` [P, 3] (`at`: position -> its rows): `take(j)` / `take_alike(j, key, originals)` give the nearest free
+    one to position j (of the rest bits `key`), ties to the lower index, and mark it used. A position of few rows
+    searches the free ones (O(K) a row, in numpy); one of many ranks them once (squared distances, then index:
+    `np.lexsort`) and walks that ranking (O(K) in all: an original once taken stays taken). Round 100a F1: a ranking
+    walked in Python for each position made thousands of positions in one group quadratic in Python steps (5,000
+    rows 25.5 s; 4.4 s before round 98a's mend)."""
+
+    def __init__(self, points: np.ndarray, candidates: np.ndarray, positions: np.ndarray, at: dict[int, list[int]]):
+        self.points, self.candidates, self.positions = points, candidates, positions
+        self.many = {j for j, rows in at.items() if len(rows) >= NEAREST_SORT_ROWS}
+        self.free = np.ones(len(candidates), bool)
+        self.slot = {c: i for i, c in enumerate(candidates.tolist())}
+        self.used: set[int] = set()
+        self._ranked: dict[int, list[int]] = {}  # position -> slots nearest first (the positions in `many`)
+        self._walks: dict[tuple[int, int | None], Iterator[int]] = {}  # (position, rest id) -> where its ranking is walked to
+        self._rest: dict[bytes, int] | None = None  # rest bits -> rest id
+        self._members: list[np.ndarray] = []  # rest id -> the slots of that rest, ascending
+        self._rest_of = np.zeros(0, np.int64)  # slot -> rest id
+
+    def _mark(self, slot: int) -> int:
+        self.free[slot] = False
+        original = int(self.candidates[slot])
+        self.used.add(original)
+        return original
+
+    def _nearest(self, j: int, rest: int | None) -> int | None:
+        """The nearest free slot to position j (of the rest id `rest`; None: any), or None when none is free."""
+        if j in self.many:
+            walk = self._walks.get((j, rest))
+            if walk is None:
+                ranked = self._ranked.get(j)
+                if ranked is None:
+                    distances = np.square(self.points - self.positions[j]).sum(axis=1)
+                    ranked = self._ranked[j] = np.lexsort((self.candidates, distances)).tolist()
+                walk = self._walks[(j, rest)] = iter(ranked if rest is None else [i for i in ranked if self._rest_of[i] == rest])
+            return next((i for i in walk if self.free[i]), None)
+        pool = np.flatnonzero(self.free) if rest is None else self._members[rest][self.free[self._members[rest]]]
+        if pool.size == 0:
+            return None
+        return int(pool[np.argmin(np.square(self.points[pool] - self.positions[j]).sum(axis=1))])
+
+    def take(self, j: int) -> int:
+        """The nearest free original to position j (there is one: the group has at least as many as rows)."""
+        return self._mark(self._nearest(j, None))
+
+    def take_alike(self, j: int, key: bytes, originals: np.ndarray) -> int | None:
+        """The nearest free original to position j whose rest (its row of `originals`) has the bits `key`, or None."""
+        if self._rest is None:
+            self._rest = {}
+            self._rest_of = np.asarray([self._rest.setdefault(originals[c].tobytes(), len(self._rest)) for c in self.candidates.tolist()], np.int64)
+            order = np.argsort(self._rest_of, kind="stable")
+            self._members = np.split(order, np.flatnonzero(np.diff(self._rest_of[order])) + 1) if order.size else []
+        rest = self._rest.get(key)
+        slot = None if rest is None else self._nearest(j, rest)
+        return None if slot is None else self._mark(slot)
+
+    def take_at(self, c: int) -> None:
+        """Mark the original c used (an exact copy's own original, at its very position)."""
+        self._mark(self.slot[c])
+
+
+def _pair_alike(at: dict[int, list[int]], picker: _NearestFree, there: dict[int, list[int]], shared: np.ndarray, idx: np.ndarray,
+                rest_keys: tuple[np.ndarray, np.ndarray] | None) -> dict[int, list[int]]:
     """Pair, in place in `idx`, the rows of a co-located group (`at`: position -> rows) with free originals whose rest is
     the same bits: first those at the row's very position (`there`: an exact copy's own original, whichever position of
-    the group comes first), then the nearest to the row's position (`nearest_first`); adds the originals taken to `used`
-    and returns the rows left (position -> rows) to pair in row order."""
+    the group comes first), then the nearest to the row's position (`picker`, which marks the originals taken); returns
+    the rows left (position -> rows) to pair in row order."""
     if rest_keys is None:
         return at
     originals, copies = rest_keys
-    left = at
-    for exact in (True, False):
-        still: dict[int, list[int]] = {}
-        for j, rows in left.items():
-            alike: dict[bytes, list[int]] = {}
-            for c in reversed(there[j] if exact else nearest_first(j)):  # nearest last, so pop() takes the nearest (O(K))
-                if c not in used:
-                    alike.setdefault(originals[c].tobytes(), []).append(c)
-            for k in rows:
-                same = alike.get(copies[shared[k]].tobytes())
-                while same and same[-1] in used:
-                    same.pop()
-                if same:
-                    idx[shared[k]] = same.pop()
-                    used.add(int(idx[shared[k]]))
-                else:
-                    still.setdefault(j, []).append(k)
-        left = still
+    still: dict[int, list[int]] = {}
+    for j, rows in at.items():
+        alike: dict[bytes, list[int]] = {}
+        for c in reversed(there[j]):  # index order reversed, so pop() takes the lowest index
+            alike.setdefault(originals[c].tobytes(), []).append(c)
+        for k in rows:
+            same = alike.get(copies[shared[k]].tobytes())
+            while same and same[-1] in picker.used:
+                same.pop()
+            if same:
+                idx[shared[k]] = same.pop()
+                picker.take_at(int(idx[shared[k]]))
+            else:
+                still.setdefault(j, []).append(k)
+    left: dict[int, list[int]] = {}
+    for j, rows in still.items():
+        for k in rows:
+            original = picker.take_alike(j, copies[shared[k]].tobytes(), originals)
+            if original is None:
+                left.setdefault(j, []).append(k)
+            else:
+                idx[shared[k]] = original
     return left
 
 

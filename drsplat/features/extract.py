@@ -131,16 +131,18 @@ def note_image(report: FeatureReport, cam, rgb: np.ndarray, file_size: tuple[int
 
 def off_power_of_two(file_size: tuple[int, int], cam) -> bool:
     """Whether an image file of file_size (width, height) is neither its camera's size (at the chosen resolution or
-    the camera file's own) nor that size over 2^j within a pixel (the downscaled copies images_2, _4, _8 and
-    further that 3DGS tools write), j ≤ OFF_SIZE_POWERS."""
+    the camera file's own) nor that size times 2^j within a pixel, |j| ≤ OFF_SIZE_POWERS: over 2^j, the downscaled
+    copies images_2, _4, _8 and further that 3DGS tools write; times 2^j, full-resolution photos beside the cameras
+    of such a copy (round 100c F2: a photo of exactly twice its camera's size was taken for one from before
+    `colmap image_undistorter`, whose size differs by a few percent)."""
     own = tuple(cam.unscaled_size) if cam.unscaled_size is not None else (cam.width, cam.height)
     if tuple(file_size) == (cam.width, cam.height):
         return False
-    return not any(abs(file_size[0] - own[0] / 2**j) <= 1 and abs(file_size[1] - own[1] / 2**j) <= 1
-                   for j in range(OFF_SIZE_POWERS + 1))
+    return not any(abs(file_size[0] - own[0] * 2.0**j) <= 1 and abs(file_size[1] - own[1] * 2.0**j) <= 1
+                   for j in range(-OFF_SIZE_POWERS, OFF_SIZE_POWERS + 1))
 
 
-OFF_SIZE_POWERS = 5  # images_32 is the smallest downscaled copy counted as one
+OFF_SIZE_POWERS = 5  # images_32 is the smallest downscaled copy counted as one (and 32x the largest multiple)
 
 
 def square_pad_box(y0: int, y1: int, x0: int, x1: int) -> tuple[int, int]:

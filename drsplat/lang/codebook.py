@@ -391,8 +391,9 @@ def train_codebook(embeddings: np.ndarray, m: int = SCENE_PQ_M, seed: int = 0, c
         raise InputError(None, f"training a PQ codebook needs at least {PQ_KSUB} embeddings, got {n}")
     distinct = distinct_rows(x)
     if distinct < PQ_KSUB:  # k-means then spreads its centroids over copies: a codebook of this set only
-        log.warning("only %d of the %d training embeddings are distinct (a PQ sub-quantiser has %d centroids): the codebook "
-                    "reconstructs these %d directions and little else; train it on many images' masks", distinct, n, PQ_KSUB, distinct)
+        log.warning("only %s of the %s training embeddings %s distinct (a PQ sub-quantiser has %d centroids): the codebook "
+                    "reconstructs %s and little else; train it on many images' masks", f"{distinct:,}", f"{n:,}", "is" if distinct == 1 else "are",
+                    PQ_KSUB, "this one direction" if distinct == 1 else f"these {distinct:,} directions")
     index = _untrained_pq(faiss, d, m, seed)
     dsub = d // m
     centroids = np.empty((m, PQ_KSUB, dsub), np.float32)

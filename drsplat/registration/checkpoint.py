@@ -22,11 +22,13 @@ from __future__ import annotations
 import dataclasses
 import fcntl
 import hashlib
+import json
 import logging
 import os
 import shutil
 import tempfile
 import zipfile
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -37,7 +39,7 @@ from drsplat.errors import DrsplatError, OutputError
 from drsplat.features import format as featurefiles
 from drsplat.memory import format_size
 from drsplat.registration.aggregate import Aggregator
-from drsplat.registration.pairlog import PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, resuming_from, shard_file, shards_folder
+from drsplat.registration.pairlog import LogRecord, PairLog, ShardError, ViewPairs, payload_checksum_ok, pointed_record, resuming_from, shard_file, shards_folder
 from drsplat.raster import NEAR, sh_in_range
 from drsplat.scene import GaussianScene, counted
 from drsplat.utils import (TEMP_SUFFIX, atomic_path, file_stamp, is_special_file, odd_entry_kind, os_error_cause, output_target, protected_mode, read_npy_header,
@@ -293,6 +295,7 @@ class Checkpoint:
                 aggregate_stats_path(self.path).unlink(missing_ok=True)
                 shutil.rmtree(shards_folder(self.path), ignore_errors=True)
             self.aggregator = aggregator
+            self._key_at = (0, params_key(self.log.params))  # (views, log_key of them): where `_log_key` goes on from
             self.stats_path = aggregate_stats_path(self.path) if aggregator.state() else None
             self.covered = None if self.stats_path is None else 0  # the views the statistics snapshot on disk covers (None: no statistics)
             if self.stats_path is not None:
@@ -350,10 +353,20 @@ class Checkpoint:
             self._snapshot(self.done)
 
     def _snapshot(self, views: int) -> None:
-        """Write the mode's statistics as covering the first `views` logged views."""
+        """Write the mode's statistics as covering the first `views` logged views, with the key of those views' records."""
         with atomic_path(self.stats_path) as tmp, open(tmp, "wb") as f:
-            np.savez(f, views=np.int64(views), **self.aggregator.state())
+            np.savez(f, views=np.int64(views), log_key=np.int64(self._log_key(views)), **self.aggregator.state())
         self.covered = views
+
+    def _log_key(self, views: int) -> int:
+        """`log_key` of the log's parameters and its first `views` records, going on from the last one asked (the
+        snapshots' views only grow; the log is cut back only before the first)."""
+        count, key = self._key_at
+        if count > views:
+            count, key = 0, params_key(self.log.params)
+        key = chained_key(key, self.log.records[count:views])
+        self._key_at = (views, key)
+        return key
 
     def close(self) -> None:
         """Close the log and release the run's lock (a later Checkpoint at this path may open it)."""
@@ -455,7 +468,12 @@ class Checkpoint:
         if not self.log.records:  # a fresh log: __init__ removed any earlier snapshot
             return
         try:
-            views, arrays = _load_snapshot(self.stats_path, self.aggregator.state())
+            views, key, arrays = _load_snapshot(self.stats_path, self.aggregator.state())
+            if views <= len(self.log.records) and key != self._log_key(views):
+                # round 100d F1: another run's snapshot (a --topk 20 run's, copied over this one's) was folded in without a word
+                log.warning("%s belongs to another run's log (its key does not match the first %d views of %s); the aggregation "
+                            "statistics restart with the views", self.stats_path, views, self.path.name)
+                views, arrays = 0, {}
         except FileNotFoundError:  # stopped before the first snapshot: the normal case of an early kill
             if len(self.log.records) <= self.every:  # a kill while the first snapshot was written, too (round 90a F3)
                 log.info("%s: its %d views predate the first statistics snapshot (every %d views); they are redone", self.path,
@@ -509,22 +527,38 @@ def _shard_record_problem(log_path: Path, ref: dict | None, files: dict) -> str 
     return None
 
 
-def _load_snapshot(path: Path, expected: dict[str, np.ndarray]) -> tuple[int, dict[str, np.ndarray]]:
-    """(views, arrays) of a statistics snapshot. Its members must be `views` (a number) and exactly
-    the arrays of `expected`, with their shapes and numeric dtypes: checked from the .npy headers
-    inside the zip before anything is read (a damaged or foreign file cannot make us allocate)."""
+def params_key(params: dict) -> int:
+    """crc32 of a log's parameters (JSON, sorted keys): where a snapshot's `log_key` starts."""
+    return zlib.crc32(json.dumps(params, sort_keys=True, default=str).encode())
+
+
+def chained_key(key: int, records: Sequence[LogRecord]) -> int:
+    """`key` chained (crc32) over the records' metadata (JSON, sorted keys: a view's name, its feature stamp, its counts):
+    a snapshot's `log_key` ties it to the log whose first views it covers."""
+    for record in records:
+        key = zlib.crc32(json.dumps(record.meta, sort_keys=True, default=str).encode(), key)
+    return key
+
+
+SNAPSHOT_SCALARS = ("views", "log_key")  # a snapshot's members beside the mode's arrays
+
+
+def _load_snapshot(path: Path, expected: dict[str, np.ndarray]) -> tuple[int, int, dict[str, np.ndarray]]:
+    """(views, log_key, arrays) of a statistics snapshot. Its members must be `views` and `log_key` (numbers) and
+    exactly the arrays of `expected`, with their shapes and numeric dtypes: checked from the .npy headers inside the
+    zip before anything is read (a damaged or foreign file cannot make us allocate)."""
     with zipfile.ZipFile(path) as archive:
         members = {name.removesuffix(".npy"): name for name in archive.namelist()}
-        if set(members) != set(expected) | {"views"}:
-            raise ValueError(f"holds {sorted(members)}, expected {sorted(set(expected) | {'views'})}")
+        if set(members) != set(expected) | set(SNAPSHOT_SCALARS):
+            raise ValueError(f"holds {sorted(members)}, expected {sorted(set(expected) | set(SNAPSHOT_SCALARS))}")
         for name, member in members.items():
             with archive.open(member) as f:
                 shape, dtype = read_npy_header(f)
-            want = () if name == "views" else expected[name].shape
+            want = () if name in SNAPSHOT_SCALARS else expected[name].shape
             if shape != want or dtype.kind not in "iuf":
                 raise ValueError(f"{name} has shape {shape} {dtype}, expected {want} numbers")
     with np.load(path, allow_pickle=False) as data:
         views = int(data["views"])
         if views < 0:
             raise ValueError(f"covers {views} views")
-        return views, {name: data[name] for name in expected}
+        return views, int(data["log_key"]), {name: data[name] for name in expected}

@@ -60,7 +60,7 @@ from drsplat.registration.reduce import BlockReduce, ReducePool, assemble_parts,
 from drsplat.registration.solve import FIRST_RUN_PROBE as SOLVE_PROBE, solve_registration
 from drsplat.registration.sink import LogSink, MemorySink, Sink, sums_place
 from drsplat.registration.sums import CANCEL_RATIO, WEAK_RESULTANT, RowFates, normalize_rows
-from drsplat.registration.views import (FeatureHeaders, ViewSelection, far_coarser_note, read_feature_headers, select_views, single_level_note, warn_if_distorted_without_manifest,
+from drsplat.registration.views import (FeatureHeaders, ViewSelection, far_coarser_note, level_count_note, read_feature_headers, select_views, single_level_note, warn_if_distorted_without_manifest,
                                         warn_if_turned_without_manifest)
 from drsplat.registration.vote import FIRST_RUN_PROBE as VOTE_PROBE, VoteSink
 from drsplat.scene import GaussianScene, counted
@@ -231,7 +231,8 @@ def prepare_run(scene: GaussianScene, cameras: Sequence[Camera], features_dir: s
     selection = select_views(cameras, features_dir, quiet=quiet)
     refuse_if_no_view_draws(scene, selection.views, options.near_plane, options.near_plane_decided)
     headers = read_feature_headers(features_dir, selection.views, options.level, missing_ok=options.place == "ray")
-    for note in (single_level_note(headers.levels, options.level), far_coarser_note(headers.coarse, len(selection.views))):
+    for note in (single_level_note(headers.levels, options.level), level_count_note(headers.levels, options.level),
+                 far_coarser_note(headers.coarse, len(selection.views))):
         if note is not None and not quiet:  # here, once: the fit stage reads its probe views' headers again
             log.warning("%s", note)
     return Run(scene, selection, features_dir, headers, options)

@@ -19,6 +19,7 @@ import numpy as np
 
 from drsplat.cameras import ASPECT_TOLERANCE, EXIF_TURNS, Camera, exif_orientation, lens_corner_shift, same_aspect
 from drsplat.errors import InputError
+from drsplat.features.masks.base import LEVELS
 from drsplat.features.format import (FEAT_SUFFIX, SEG_SUFFIX, STAMP_JOURNAL, check_feat_layout, check_seg_layout, feat_path, irregular_feature_entries,
                                      list_stems, read_features_report, resample_nearest, seg_path)
 from drsplat.utils import npy_header
@@ -352,6 +353,26 @@ def single_level_note(levels: dict[str, int], level: int) -> str | None:
     return (f"{len(single)} views' mask files have one level ({', '.join(single[:3])}{', ...' if len(single) > 3 else ''}); the other "
             f"{multi.total()} views have {several}: their one level is used as level {level}, a mask scale of its own beside the "
             "others' (remake their features with all levels, or register those with one)")
+
+
+def level_count_note(levels: dict[str, int], level: int) -> str | None:
+    """The warning, or None, for mask-id files (name -> levels) of several levels whose layout is not
+    LangSplat's four (default, s, m, l), or not one layout in every view: `level` picks each file's
+    level of that index, which is LangSplat's scale of that name only in its four-level layout (round
+    100c F1: a folder of 3-level files, read as s, m, l, gave its m masks for the default level s,
+    and a folder mixing 3 and 4 levels one view's s masks beside another's m, without a word).
+    Single-level files are `single_level_note`'s."""
+    multi = Counter(count for count in levels.values() if count > 1)
+    if not multi or set(multi) == {len(LEVELS)}:
+        return None
+    named = f" (LangSplat's '{LEVELS[level]}' only in files of {len(LEVELS)} levels)" if level < len(LEVELS) else ""
+    if len(multi) == 1:
+        (count, views), = multi.items()
+        return (f"the {counted(views, 'view', 'views')}' mask files have {count} levels, not LangSplat's {len(LEVELS)} ({', '.join(LEVELS)}): "
+                f"level {level} is read as each file's level {level} by index, whatever mask scale it holds there{named}")
+    layouts = ", ".join(f"{counted(views, 'view', 'views')} {count}" for count, views in sorted(multi.items()))
+    return (f"the views' mask files have different numbers of levels ({layouts}): level {level} is each file's level {level} by index, "
+            f"a different mask scale in files of another layout{named}; remake the features so every view has the same levels")
 
 
 def check_aspect(path: Path, w: int, h: int, cam: Camera) -> None:
