@@ -17,7 +17,7 @@ from drsplat.commands.common import (
     add_lut_bits_argument,
     load_registered,
     load_registered_rows,
-    nonneg_int,
+    positive_int,
     output_file,
     resolve_threshold,
     checked_phrases,
@@ -53,7 +53,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--scores", type=output_file, metavar="OUT.npy", help="write float32 scores, (N,) for one query or (N, K)")
     parser.add_argument("--out", type=output_file, metavar="SELECTION.ply", help="write the Gaussians scoring >= T as a PLY, or .splat / .spz / .compressed.ply by the name (see --format)")
     add_format_argument(parser, "--out")
-    parser.add_argument("--top", type=nonneg_int, default=10, help="how many best Gaussians to print when nothing is written")
+    parser.add_argument("--top", type=positive_int, default=10, help="how many best Gaussians to print when nothing is written (at least 1)")
     add_clip_arguments(parser, scoring=True)
     parser.set_defaults(func=run)
 
