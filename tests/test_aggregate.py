@@ -745,7 +745,7 @@ def test_view_hook_survives_pickling(hard_tiny):
 
 
 @pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views", "binary header", "missing",
-                                    "compression method 99", "encrypted flag", "another run's"])
+                                    "compression method 99", "encrypted flag", "another run's", "an earlier drsplat's"])
 def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_path, damage, caplog):
     """A damaged or foreign `.aggregate.npz` beside the log: one warning, the run starts over and equals a
     fresh one (its headers are checked before anything is read, so a huge shape cannot allocate). The warning
@@ -773,6 +773,8 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
         np.savez(snapshot.open("wb"), **{**arrays, "views": np.int64(-3)})
     elif damage == "missing":
         snapshot.unlink()
+    elif damage == "an earlier drsplat's":  # round 102a F3: a snapshot without the log's key was called damaged
+        np.savez(snapshot.open("wb"), **{name: value for name, value in arrays.items() if name != "log_key"})
     elif damage == "another run's":  # round 100d F1: a --topk 20 run's snapshot copied over this one's was folded in
         other, token = tmp_path / "other.log", CancelToken()
         with pytest.raises(Cancelled):
@@ -813,6 +815,10 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
     if damage == "missing":
         assert [r.getMessage().split(": ", 1)[1] for r in caplog.records if "is missing" in r.getMessage()] == [
             f"its statistics snapshot {snapshot.name} is missing; its 5 views are redone"]
+        return
+    if damage == "an earlier drsplat's":
+        assert [r.getMessage() for r in caplog.records if "aggregate.npz" in r.getMessage()] == [
+            f"{snapshot} was written by an earlier drsplat, which did not tie it to its log; the aggregation statistics restart with the views"]
         return
     if damage == "another run's":
         assert [r.getMessage() for r in caplog.records if "belongs to another run's log" in r.getMessage()] == [

@@ -128,7 +128,7 @@ def test_mask_files_of_another_number_of_levels_than_langsplats_four_are_warned_
     with caplog.at_level(logging.WARNING, logger=WARN):
         prepare_run(scene, three, tmp_path, options)
     said = [m for m in warnings_of(caplog) if "match no camera" not in m]  # the four-level files left in the folder are named too
-    assert said == ["the 2 views' mask files have 3 levels, not LangSplat's 4 (default, s, m, l): level 1 is read as each file's level 1 "
+    assert said == ["the mask files of 2 views have 3 levels, not LangSplat's 4 (default, s, m, l): level 1 is read as each file's level 1 "
                     "by index, whatever mask scale it holds there (LangSplat's 's' only in files of 4 levels)"], said
     write_maps(tmp_path, three, [(30, 40)] * 2, seed=2)  # single-level files beside four-level ones are single_level_note's
     caplog.clear()

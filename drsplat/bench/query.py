@@ -316,15 +316,15 @@ def text_query_table(book: Codebook, negatives: np.ndarray, name: str, n: int, s
     exact = feats @ queries.T
     runs = {"float32 tables": dict(lut_bits=32), "8-bit, one scale": dict(lut_bits=8, exact_span=np.inf), "8-bit, wide tables float32": dict(lut_bits=8)}
     scores, times = {}, {}
-    for name, kw in runs.items():
+    for tables, kw in runs.items():  # not `name`: the queries' file, which the header names (round 101b F2)
         call = lambda kw=kw: lut_scores_blocked(book, blocked, n, store.list_ids, store.norms, queries, **kw)  # noqa: E731
-        scores[name], times[name] = call(), median_seconds(call, repeats) / len(queries)
+        scores[tables], times[tables] = call(), median_seconds(call, repeats) / len(queries)
     top = np.quantile(scores["float32 tables"], 0.99, axis=0)
     rows = []
-    for name, got in scores.items():
+    for tables, got in scores.items():
         picked, ref = got >= top, scores["float32 tables"] >= top
         iou = float(np.mean([(picked[:, k] & ref[:, k]).sum() / max((picked[:, k] | ref[:, k]).sum(), 1) for k in range(len(queries))]))
-        rows.append([name, 1e3 * times[name], float(np.abs(got - exact).mean()), float(np.abs(got - scores["float32 tables"]).mean()), iou])
+        rows.append([tables, 1e3 * times[tables], float(np.abs(got - exact).mean()), float(np.abs(got - scores["float32 tables"]).mean()), iou])
     head = (f"8-bit tables on CLIP text queries ({name}, {len(queries)} rows) over {n:,} random unit features, "
             f"{book.kind} M={book.m}; per query, mean over the queries; IoU of each query's top 1 % against the float32 tables'")
     return head + "\n" + format_table(["tables", "ms/query", "mean |Δcos| vs exact", "mean |Δ| vs float32 tables", "top-1 % IoU vs float32"], rows)

@@ -668,7 +668,8 @@ class _NearestFree:
         self.free = np.ones(len(candidates), bool)
         self.slot = {c: i for i, c in enumerate(candidates.tolist())}
         self.used: set[int] = set()
-        self._ranked: dict[int, list[int]] = {}  # position -> slots nearest first (the positions in `many`)
+        self._ranked: dict[int, np.ndarray] = {}  # position -> slots nearest first (the positions in `many`)
+        self._rank_of: dict[int, np.ndarray] = {}  # position -> each slot's place in its ranking
         self._walks: dict[tuple[int, int | None], Iterator[int]] = {}  # (position, rest id) -> where its ranking is walked to
         self._rest: dict[bytes, int] | None = None  # rest bits -> rest id
         self._members: list[np.ndarray] = []  # rest id -> the slots of that rest, ascending
@@ -685,16 +686,29 @@ class _NearestFree:
         if j in self.many:
             walk = self._walks.get((j, rest))
             if walk is None:
-                ranked = self._ranked.get(j)
-                if ranked is None:
-                    distances = np.square(self.points - self.positions[j]).sum(axis=1)
-                    ranked = self._ranked[j] = np.lexsort((self.candidates, distances)).tolist()
-                walk = self._walks[(j, rest)] = iter(ranked if rest is None else [i for i in ranked if self._rest_of[i] == rest])
+                walk = self._walks[(j, rest)] = iter(self._ranking(j, rest))
             return next((i for i in walk if self.free[i]), None)
         pool = np.flatnonzero(self.free) if rest is None else self._members[rest][self.free[self._members[rest]]]
         if pool.size == 0:
             return None
         return int(pool[np.argmin(np.square(self.points[pool] - self.positions[j]).sum(axis=1))])
+
+    def _ranking(self, j: int, rest: int | None) -> list[int]:
+        """Position j's slots nearest first (of the rest id `rest`; None: all). The whole ranking is made once for the
+        position; a rest's slots are put in its order by their ranks there (round 102a F1: filtered from the whole
+        ranking in Python for each rest asked, K rests at one position were quadratic)."""
+        ranked = self._ranked.get(j)
+        if ranked is None:
+            distances = np.square(self.points - self.positions[j]).sum(axis=1)
+            ranked = self._ranked[j] = np.lexsort((self.candidates, distances))
+        if rest is None:
+            return ranked.tolist()
+        rank_of = self._rank_of.get(j)
+        if rank_of is None:
+            rank_of = self._rank_of[j] = np.empty(len(ranked), np.int64)
+            rank_of[ranked] = np.arange(len(ranked))
+        members = self._members[rest]
+        return members[np.argsort(rank_of[members])].tolist()
 
     def take(self, j: int) -> int:
         """The nearest free original to position j (there is one: the group has at least as many as rows)."""

@@ -474,6 +474,10 @@ class Checkpoint:
                 log.warning("%s belongs to another run's log (its key does not match the first %d views of %s); the aggregation "
                             "statistics restart with the views", self.stats_path, views, self.path.name)
                 views, arrays = 0, {}
+        except SnapshotWithoutKey:
+            log.warning("%s was written by an earlier drsplat, which did not tie it to its log; the aggregation statistics restart "
+                        "with the views", self.stats_path)
+            views, arrays = 0, {}
         except FileNotFoundError:  # stopped before the first snapshot: the normal case of an early kill
             if len(self.log.records) <= self.every:  # a kill while the first snapshot was written, too (round 90a F3)
                 log.info("%s: its %d views predate the first statistics snapshot (every %d views); they are redone", self.path,
@@ -543,12 +547,18 @@ def chained_key(key: int, records: Sequence[LogRecord]) -> int:
 SNAPSHOT_SCALARS = ("views", "log_key")  # a snapshot's members beside the mode's arrays
 
 
+class SnapshotWithoutKey(ValueError):
+    """A statistics snapshot of an earlier drsplat, which kept no `log_key`: what it covers cannot be told."""
+
+
 def _load_snapshot(path: Path, expected: dict[str, np.ndarray]) -> tuple[int, int, dict[str, np.ndarray]]:
     """(views, log_key, arrays) of a statistics snapshot. Its members must be `views` and `log_key` (numbers) and
     exactly the arrays of `expected`, with their shapes and numeric dtypes: checked from the .npy headers inside the
     zip before anything is read (a damaged or foreign file cannot make us allocate)."""
     with zipfile.ZipFile(path) as archive:
         members = {name.removesuffix(".npy"): name for name in archive.namelist()}
+        if set(members) == set(expected) | {"views"}:  # all but the key: written before it was kept (round 102a F3)
+            raise SnapshotWithoutKey()
         if set(members) != set(expected) | set(SNAPSHOT_SCALARS):
             raise ValueError(f"holds {sorted(members)}, expected {sorted(set(expected) | set(SNAPSHOT_SCALARS))}")
         for name, member in members.items():

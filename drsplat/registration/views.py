@@ -368,7 +368,7 @@ def level_count_note(levels: dict[str, int], level: int) -> str | None:
     named = f" (LangSplat's '{LEVELS[level]}' only in files of {len(LEVELS)} levels)" if level < len(LEVELS) else ""
     if len(multi) == 1:
         (count, views), = multi.items()
-        return (f"the {counted(views, 'view', 'views')}' mask files have {count} levels, not LangSplat's {len(LEVELS)} ({', '.join(LEVELS)}): "
+        return (f"the mask files of {counted(views, 'view', 'views')} have {count} levels, not LangSplat's {len(LEVELS)} ({', '.join(LEVELS)}): "
                 f"level {level} is read as each file's level {level} by index, whatever mask scale it holds there{named}")
     layouts = ", ".join(f"{counted(views, 'view', 'views')} {count}" for count, views in sorted(multi.items()))
     return (f"the views' mask files have different numbers of levels ({layouts}): level {level} is each file's level {level} by index, "
