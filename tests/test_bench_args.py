@@ -468,16 +468,19 @@ def test_the_text_query_tables_header_names_the_queries_file():
     assert table.splitlines()[0].startswith("8-bit tables on CLIP text queries (text_negative.npy, 4 rows) over 500 random"), table
 
 
-@pytest.mark.parametrize("simd", [True, False])
-def test_the_machine_line_says_whether_the_avx512_table_kernels_ran(monkeypatch, simd):
+@pytest.mark.parametrize("f32, q8, words", [(True, True, "AVX-512 table kernels: float32 and 8-bit"),
+                                             (True, False, "AVX-512 table kernels: float32,"),
+                                             (False, False, "no AVX-512 table kernels (portable ones)")])
+def test_the_machine_line_says_which_avx512_table_kernels_ran(monkeypatch, f32, q8, words):
     """Round 101b F5: "machine: x86_64, 2 cores" hid whether the AVX-512 look-up-table kernels ran, which turns the 8-bit
-    tables from ~1.8x faster than float32 ones (the docs' machine) to slower (this one)."""
+    tables from ~1.8x faster than float32 ones (the docs' machine) to slower (this one); round 103a F1: the float32
+    kernel needs avx512f only, the 8-bit one VBMI too (not on Skylake-SP), so the line names each."""
     import drsplat.lang.lut as lut
     from drsplat.bench.common import machine_line
 
-    monkeypatch.setattr(lut, "simd_available", lambda: simd)
-    line = machine_line()
-    assert ("AVX-512 table kernels" in line) == simd and ("no AVX-512 (portable table kernels)" in line) != simd, line
+    monkeypatch.setattr(lut, "simd_available", lambda: f32)
+    monkeypatch.setattr(lut, "simd_q8_available", lambda: q8)
+    assert words in machine_line(), machine_line()
 
 
 def test_register_synthetic_table_with_against_and_a_mask_source(capsys):

@@ -36,13 +36,15 @@ def peak_rss_mb() -> float:
 
 
 def machine_line() -> str:
-    """The machine a bench ran on, and whether the AVX-512 look-up-table kernels ran there: without them the 8-bit tables
-    score slower than float32 ones, with them ~1.8x faster (round 101b F5: the line did not say which)."""
+    """The machine a bench ran on, and which AVX-512 look-up-table kernels ran there: without the 8-bit one the 8-bit
+    tables score slower than float32 ones, with it ~1.8x faster (round 101b F5: the line did not say; round 103a F1: the
+    float32 kernel needs avx512f only, the 8-bit one avx512bw and avx512vbmi too, which Skylake-SP lacks)."""
     import os
 
-    from drsplat.lang.lut import simd_available
+    from drsplat.lang.lut import simd_available, simd_q8_available
 
-    simd = "AVX-512 table kernels" if simd_available() else "no AVX-512 (portable table kernels)"
+    kernels = [name for name, there in (("float32", simd_available()), ("8-bit", simd_q8_available())) if there]
+    simd = f"AVX-512 table kernels: {' and '.join(kernels)}" if kernels else "no AVX-512 table kernels (portable ones)"
     return f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, {simd}, Python {platform.python_version()}"
 
 

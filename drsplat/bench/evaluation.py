@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         t_sub = median_seconds(lambda: pseudo_labels(gs, pts[few], labels[few], engine=engine, show_progress=False), args.repeats)
         got = pseudo_labels(gs, pts[few], labels[few], engine=engine, show_progress=False).labels
         # round 101b F4: most of the subset has no label in either, so the agreement among those the reference labels too
-        among = f"{np.mean(got[labelled] == ref_labels[labelled]):.4f} of the {int(labelled.sum())} it labels" if labelled.any() else "none labelled"
+        among = (f"{np.mean(got[labelled] == ref_labels[labelled]):.4f} on the {int(labelled.sum())} the reference labels" if labelled.any()
+                 else "the reference labels none")
         rows.append([f"pseudo-labels ({engine}) {len(sub)} G x {len(few)} pts", t_ref, t_sub, t_ref / t_sub,
                      f"{np.mean(got == ref_labels):.4f} agree ({among})"])
     full = {}

@@ -531,6 +531,12 @@ def simd_available() -> bool:
     return _simd_kernel("f32_sums") is not None
 
 
+def simd_q8_available() -> bool:
+    """Whether the AVX-512 VBMI 8-bit blocked kernel runs on this CPU (avx512bw and avx512vbmi: not on Skylake-SP or
+    Cascade Lake, whose float32 kernel runs all the same)."""
+    return _simd_kernel("q8_sums") is not None
+
+
 def q8_sums(blocked: np.ndarray, qlut: np.ndarray, use_simd: bool = True) -> np.ndarray:
     """Σ_m qlut[m, code_im] for every Gaussian of blocked codes [NB, M, 64]: [NB·64] uint16.
 
