@@ -483,6 +483,24 @@ def test_the_machine_line_says_which_avx512_table_kernels_ran(monkeypatch, f32, 
     assert words in machine_line(), machine_line()
 
 
+def test_bench_query_reports_what_a_training_sample_costs(tmp_path, capsys):
+    """Round 101b: training a codebook on a sample (`pq train --max-train`, the scene codebook's rows) is an approximation
+    no bench measured. `--train-sizes` trains one on each size and gives its time beside its scores' error; the row of the
+    size the main table's codebook was trained on gives that table's error, and fewer embeddings cost accuracy here."""
+    argv = ["bench", "query", "--sizes", "20k", "--backends", "pq32", "--dim", "64", "--train", "1000", "--train-sizes", "256,1k,4k",
+            "--repeats", "1", "--plot", tmp_path / "q.png", "--cache-dir", tmp_path / "cache"]
+    code, err, out = run_cli(argv, capsys)
+    assert code == 0, err
+    lines = out.splitlines()
+    main_row = next(line for line in lines if line.startswith("| PQ M=32 (LUT) "))
+    at = next(i for i, line in enumerate(lines) if line.startswith("PQ M=32 trained on a sample of embeddings"))
+    sample = {row.split("|")[1].strip(): [c.strip() for c in row.strip("|").split("|")] for row in lines[at + 3:at + 6]}
+    assert list(sample) == ["256", "1,000", "4,000"], sample
+    assert sample["1,000"][2:] == [c.strip() for c in main_row.strip("|").split("|")][6:9], (sample["1,000"], main_row)
+    assert float(sample["256"][2]) > float(sample["4,000"][2]) > 0  # mean |Δcos|: a smaller sample, a larger error
+    assert run_cli([*argv[:-4], "--train-sizes", "100", *argv[-4:]], capsys)[0] == 2  # fewer than a sub-quantiser's 256 centroids
+
+
 def test_register_synthetic_table_with_against_and_a_mask_source(capsys):
     code, err, out = run_cli(["bench", "register", "--skip-real", "--preset", "tiny", "--topks", "5", "--repeats", "2",
                               "--against", "paper", "--mask-source", "geometry"], capsys)

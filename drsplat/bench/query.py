@@ -50,6 +50,10 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
                    help=f"object classes in the synthetic embeddings, 2..{MAX_LABELS:,} (a query's class against the rest; default: 40)")
     p.add_argument("--queries", type=positive_int, default=8, help="text queries whose errors are averaged, one class each: at most --labels (default: 8)")
     p.add_argument("--train", type=positive_int, default=5_000, help=f"embeddings used to train the general PQ codebooks, at least {PQ_KSUB} (default: 5000)")
+    p.add_argument("--train-sizes", type=count_list, default=None, metavar="SIZES",
+                   help="also train PQ codebooks (M of the first pq backend, 128 without one) on each of these numbers of embeddings, "
+                        "e.g. 1k,5k,20k, and report the training time beside the scores' error on the first --sizes Gaussians: what "
+                        "`pq train --max-train` and the scene codebook's training sample cost (default: not run)")
     p.add_argument("--cache-dir", type=Path, default=None,
                    help="trained PQ codebooks (the pq* backends) are kept here for reuse (default: drsplat-bench-query in the temp folder)")
     p.add_argument("--official", type=Path, default=None,
@@ -277,6 +281,31 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
     return rows
 
 
+def train_sample_table(model: EmbeddingModel, m: int, samples: list[int], n: int, num_queries: int, seed: int) -> str:
+    """A PQ codebook of M = `m` trained on each number of embeddings in `samples` (a draw of its own, as a general codebook
+    never sees the scene), its training time beside its scores' error against the exact cosines of `n` Gaussians
+    (`errors_against`: mean |Δcos|, Spearman ρ, IoU at each query's threshold): the speed against error of training on
+    a sample (`pq train --max-train`, the scene codebook's sample of rows)."""
+    rng = np.random.default_rng(seed + 1)
+    q_labels = rng.choice(model.label_dirs.shape[0], size=min(num_queries, model.label_dirs.shape[0]), replace=False)
+    queries = model.texts(q_labels)
+    x, labels = model.images(n, 0)
+    exact = x @ queries.T
+    thresholds = localisation_thresholds(exact, labels, q_labels)
+    rows = []
+    for size in samples:
+        train, _ = model.images(size, 10_000_019)
+        t0 = time.perf_counter()
+        book = train_codebook(train, m=m, seed=seed)
+        seconds = time.perf_counter() - t0
+        stored = PQStorage.encode(x, np.ones(n, bool), book)
+        approx = lut_scores(book, stored.codes, stored.list_ids, stored.norms, queries)
+        rows.append([f"{size:,}", seconds, *errors_against(exact, approx, thresholds, np.random.default_rng(seed))])
+    head = (f"PQ M={m} trained on a sample of embeddings: training time against the scores' error on {n:,} Gaussians "
+            f"({len(queries)} text queries; errors vs exact cosine)")
+    return head + "\n" + format_table(["train embeddings", "train s", "mean |Δcos|", "Spearman", "IoU@T"], rows)
+
+
 def device_rows(fields: list[tuple[str, LanguageField]], n: int, q1: np.ndarray, queries: np.ndarray, device: str, repeats: int) -> list[list]:
     """Per field: numba CPU ms/query, torch ms/query on `device` (scores back in host memory), their ratio and the max |Δ| of the scores."""
     from drsplat.device import resolve_device
@@ -437,6 +466,11 @@ def check_flags(args: argparse.Namespace, backends: list[str]) -> None:
                          f"M must divide the dimension (e.g. --dim 512)")
     if pq and args.train < PQ_KSUB:
         raise UsageError(f"--train {args.train}: training a PQ codebook ({', '.join(pq)}) needs at least {PQ_KSUB} embeddings")
+    if args.train_sizes and min(args.train_sizes) < PQ_KSUB:
+        raise UsageError(f"--train-sizes {min(args.train_sizes)}: training a PQ codebook needs at least {PQ_KSUB} embeddings")
+    m = next((int(name[2:]) for name in backends if name.startswith("pq")), 128)
+    if args.train_sizes and args.dim % m:
+        raise UsageError(f"--train-sizes trains PQ M={m}, which does not divide --dim {args.dim}")
     if "faiss" in backends and not any(b in backends for b in FAISS_SEARCHED):
         raise UsageError(f"--backends faiss times faiss's own search over the codes of {' or '.join(FAISS_SEARCHED)}: add one of them")
 
@@ -528,6 +562,9 @@ def run(args: argparse.Namespace) -> int:
         print(format_table(["backend", "N", "device", "numba ms", "torch ms", "speed-up", "max |Δ|"], args.device_rows))
     if negatives is not None:
         print(text_query_table(official, negatives, TEXT_NEGATIVES, TEXT_TABLE_N, args.seed, args.repeats))
+    if args.train_sizes:
+        m = next((int(name[2:]) for name in backends if name.startswith("pq")), 128)
+        print(train_sample_table(model, m, args.train_sizes, sizes[0], args.queries, args.seed))
     print(machine_line())
     plot(rows, args.plot)
     print(f"plot: {shown_path(args.plot)}")
