@@ -22,6 +22,7 @@ from drsplat.bench.common import choice_list, count_arg, count_list, format_tabl
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.lang import (PQ_KSUB, Codebook, ExactStorage, LanguageField, PQStorage, blocked_codes, load_codebook, lut_scores,
                           lut_scores_blocked, train_codebook)
+from drsplat.lang.codebook import SCENE_PQ_M
 from drsplat.query import embedding_row_problems, unit_rows
 
 log = logging.getLogger(__name__)
@@ -281,6 +282,11 @@ def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: d
     return rows
 
 
+def train_sample_m(backends: list[str]) -> int:
+    """The M of `--train-sizes`' codebooks: the first pq backend's, else `pq train`'s default (SCENE_PQ_M, the paper's 128)."""
+    return next((int(name[2:]) for name in backends if name.startswith("pq")), SCENE_PQ_M)
+
+
 def train_sample_table(model: EmbeddingModel, m: int, samples: list[int], n: int, num_queries: int, seed: int) -> str:
     """A PQ codebook of M = `m` trained on each number of embeddings in `samples` (a draw of its own, as a general codebook
     never sees the scene), its training time beside its scores' error against the exact cosines of `n` Gaussians
@@ -468,7 +474,7 @@ def check_flags(args: argparse.Namespace, backends: list[str]) -> None:
         raise UsageError(f"--train {args.train}: training a PQ codebook ({', '.join(pq)}) needs at least {PQ_KSUB} embeddings")
     if args.train_sizes and min(args.train_sizes) < PQ_KSUB:
         raise UsageError(f"--train-sizes {min(args.train_sizes)}: training a PQ codebook needs at least {PQ_KSUB} embeddings")
-    m = next((int(name[2:]) for name in backends if name.startswith("pq")), 128)
+    m = train_sample_m(backends)
     if args.train_sizes and args.dim % m:
         raise UsageError(f"--train-sizes trains PQ M={m}, which does not divide --dim {args.dim}")
     if "faiss" in backends and not any(b in backends for b in FAISS_SEARCHED):
@@ -563,8 +569,7 @@ def run(args: argparse.Namespace) -> int:
     if negatives is not None:
         print(text_query_table(official, negatives, TEXT_NEGATIVES, TEXT_TABLE_N, args.seed, args.repeats))
     if args.train_sizes:
-        m = next((int(name[2:]) for name in backends if name.startswith("pq")), 128)
-        print(train_sample_table(model, m, args.train_sizes, sizes[0], args.queries, args.seed))
+        print(train_sample_table(model, train_sample_m(backends), args.train_sizes, sizes[0], args.queries, args.seed))
     print(machine_line())
     plot(rows, args.plot)
     print(f"plot: {shown_path(args.plot)}")

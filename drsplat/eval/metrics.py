@@ -637,11 +637,12 @@ def _pair_in_row_order(tree, sub: np.ndarray, idx: np.ndarray, radius: float, re
         for k in members:
             at.setdefault(where[k], []).append(k)
         candidates = np.asarray(sorted(free), np.int64)
+        points = np.ascontiguousarray(tree.data[candidates], np.float64)  # gathered once: for `there` and the picker
         places: dict[bytes, list[int]] = {}  # the free originals by their very position, in index order
-        for c, place in zip(candidates.tolist(), np.ascontiguousarray(tree.data[candidates], np.float64)):
+        for c, place in zip(candidates.tolist(), points):
             places.setdefault(place.tobytes(), []).append(c)
         there = {j: places.get(np.ascontiguousarray(positions[j], np.float64).tobytes(), []) for j in at}
-        picker = _NearestFree(np.ascontiguousarray(tree.data[candidates], np.float64), candidates, positions, at)
+        picker = _NearestFree(points, candidates, positions, at)
         left = _pair_alike(at, picker, there, shared, idx, rest_keys)
         for j, rows in left.items():
             for k in rows:
