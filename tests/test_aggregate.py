@@ -745,7 +745,8 @@ def test_view_hook_survives_pickling(hard_tiny):
 
 
 @pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views", "binary header", "missing",
-                                    "compression method 99", "encrypted flag", "another run's", "an earlier drsplat's"])
+                                    "compression method 99", "encrypted flag", "another run's", "an earlier drsplat's", "views inf",
+                                    "log key inf"])
 def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_path, damage, caplog):
     """A damaged or foreign `.aggregate.npz` beside the log: one warning, the run starts over and equals a
     fresh one (its headers are checked before anything is read, so a huge shape cannot allocate). The warning
@@ -769,6 +770,8 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
         snapshot.write_bytes(b"PK\x03\x04 not a zip")
     elif damage == "views is an array":
         np.savez(snapshot.open("wb"), **{**arrays, "views": np.arange(3)})
+    elif damage in ("views inf", "log key inf"):  # int(inf) raised OverflowError, which the resume did not catch: a traceback
+        np.savez(snapshot.open("wb"), **{**arrays, ("views" if damage == "views inf" else "log_key"): np.float64(np.inf)})
     elif damage == "negative views":
         np.savez(snapshot.open("wb"), **{**arrays, "views": np.int64(-3)})
     elif damage == "missing":

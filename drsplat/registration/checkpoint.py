@@ -24,6 +24,7 @@ import fcntl
 import hashlib
 import json
 import logging
+import math
 import os
 import shutil
 import tempfile
@@ -568,7 +569,16 @@ def _load_snapshot(path: Path, expected: dict[str, np.ndarray]) -> tuple[int, in
             if shape != want or dtype.kind not in "iuf":
                 raise ValueError(f"{name} has shape {shape} {dtype}, expected {want} numbers")
     with np.load(path, allow_pickle=False) as data:
-        views = int(data["views"])
+        views, key = (_whole_number(data[name], name) for name in SNAPSHOT_SCALARS)
         if views < 0:
             raise ValueError(f"covers {views} views")
-        return views, int(data["log_key"]), {name: data[name] for name in expected}
+        return views, key, {name: data[name] for name in expected}
+
+
+def _whole_number(value: np.ndarray, name: str) -> int:
+    """A snapshot's 0-d `views` or `log_key` as an int; ValueError for a float that is not a whole number (int() of an
+    inf raised OverflowError, which no caller took for a damaged file: a traceback)."""
+    number = value.item()
+    if isinstance(number, float) and not (math.isfinite(number) and number.is_integer()):
+        raise ValueError(f"{name} is {number}, not a whole number")
+    return int(number)
