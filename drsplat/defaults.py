@@ -24,6 +24,9 @@ def openmp_wait_policy(value: str | None) -> str | None:
     return policy if policy in ("active", "passive") else None
 
 
+VOXEL_RESOLUTION = 96  # the voxel IoU's voxels along the longest side of the labelled region (`eval iou --voxel-resolution`)
+VOXEL_EMPTY = 0.01  # α-mass below which a voxel is empty (`eval iou --voxel-empty`)
+
 MAX_TOPK = 1024  # Gaussians kept per pixel at most (top-k buffers are [H, W, k])
 DEFAULT_TOPK = 40  # Gaussians kept per pixel: the paper's k; the top-k ablation plateaus from k = 10 (docs/evaluation.md)
 DEFAULT_LEVEL = 1  # the LangSplat mask level registration reads: "s" (levels are default, s, m, l)

@@ -106,6 +106,8 @@ BAD_FLAGS = [
     (["register", "--gaussians", "inf"], "--gaussians"), (["register", "--gaussians", "1e12"], "--gaussians"),
     (["eval", "--gaussians", "0"], "--gaussians"), (["eval", "--gaussians", "-5"], "--gaussians"),
     (["eval", "--points", "0"], "--points"), (["eval", "--points", "-1"], "--points"),
+    (["eval", "--voxel-resolutions", "0"], "--voxel-resolutions"), (["eval", "--voxel-resolutions", "32,abc"], "--voxel-resolutions"),
+    (["eval", "--voxel-preset", "bogus"], "--voxel-preset"),
     # register: ValueError tracebacks from the synthetic dataset, slices of negative views
     (["register", "--mislabel", "nan"], "--mislabel"), (["register", "--mislabel", "2"], "--mislabel"), (["register", "--mislabel", "-1"], "--mislabel"),
     (["register", "--preset", "bogus"], "--preset"), (["register", "--real-topk", "0"], "--real-topk"), (["register", "--topks", "5,2000"], "--topks"),

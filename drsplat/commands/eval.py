@@ -22,7 +22,7 @@ from drsplat.cameras import folded_name, spelling_difference
 from drsplat.commands.common import (add_near_plane_argument, add_principal_point_argument, check_npy_name, float_range, guard_args, guard_field_codebook, int_range, json_output_file,
                                      output_file, refuse_repeats, shown_number, table_stream, threshold_value)
 from drsplat.defaults import (DEFAULT_TOPK, LANGSPLAT_MASK_THRESHOLD, LERF_ALPHA_LIMIT, LERF_ALPHA_THRESHOLD, NEAR, ORACLE_LABEL_NAMES,
-                              ORACLE_TEXT_EMBEDDINGS)
+                              ORACLE_TEXT_EMBEDDINGS, VOXEL_EMPTY, VOXEL_RESOLUTION)
 from drsplat.errors import DrsplatError, InputError, UsageError, shown_path
 from drsplat.eval.datasets import load_gt_labels, load_label_names
 from drsplat.scene import counted
@@ -31,8 +31,6 @@ from drsplat.utils import CancelToken, cancel_on_signals, check_outputs_writable
 log = logging.getLogger(__name__)
 
 WEIGHTINGS = ("volume", "count", "voxel")
-VOXEL_RESOLUTION = 96  # voxels along the longest side of the labelled region (`eval.metrics.evaluate_scene`'s default)
-VOXEL_EMPTY = 0.01  # α-mass below which a voxel is empty
 # the Mahalanobis radius of a vote: a point at r = 40 weighs exp(-800) = 0 in float64, so a larger radius adds no
 # Gaussian vote's weight, only neighbour-search work (every point near every Gaussian at 1e308); such a point still
 # counts as a voter, whose label a Gaussian with no nearer one takes (round 69c F1)

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
+from drsplat.defaults import VOXEL_EMPTY, VOXEL_RESOLUTION
 from drsplat.query import thresholds_as_compared
 from drsplat.scene import MAX_COORDINATE
 
@@ -299,7 +300,7 @@ class VoxelGrid:
         return np.stack([a.ravel() for a in g], axis=1)
 
 
-def grid_for(means: np.ndarray, resolution: int = 96, padding: float = 0.02) -> VoxelGrid:
+def grid_for(means: np.ndarray, resolution: int = VOXEL_RESOLUTION, padding: float = 0.02) -> VoxelGrid:
     """A grid around `means` ([N, 3], finite rows within MAX_COORDINATE only) with `resolution` voxels on the longest side.
 
     A mean beyond MAX_COORDINATE (1e15) is one no view can see (the scene loader says so; the rasterizer skips it):
@@ -418,17 +419,17 @@ class VoxelSetup:
     covs: np.ndarray
     opacities: np.ndarray
     grid: VoxelGrid
-    empty_threshold: float = 0.01
+    empty_threshold: float = VOXEL_EMPTY
 
     @classmethod
-    def from_scene(cls, scene, resolution: int = 96, empty_threshold: float = 0.01, focus: np.ndarray | None = None) -> "VoxelSetup":
+    def from_scene(cls, scene, resolution: int = VOXEL_RESOLUTION, empty_threshold: float = VOXEL_EMPTY, focus: np.ndarray | None = None) -> "VoxelSetup":
         """Grid over the Gaussians in `focus` ([N] bool, e.g. labelled or selected ones; all by default)."""
         grid = cls.grid_of(scene, resolution, focus)
         return cls(scene.means.astype(np.float64), scene.covariances().astype(np.float64), scene.opacities().astype(np.float64), grid,
                    empty_threshold)
 
     @staticmethod
-    def grid_of(scene, resolution: int = 96, focus: np.ndarray | None = None) -> VoxelGrid:
+    def grid_of(scene, resolution: int = VOXEL_RESOLUTION, focus: np.ndarray | None = None) -> VoxelGrid:
         """The grid `from_scene` makes: `resolution` voxels on the longest side of the box of the Gaussians in `focus`."""
         return grid_for(scene.means if focus is None else scene.means[focus], resolution)  # grid_for reads them in float64
 
@@ -797,7 +798,7 @@ def expand_scores(scores: np.ndarray, index: np.ndarray, num_original: int, fill
 
 def evaluate_scene(scene, scores: np.ndarray, gt_labels: np.ndarray, label_names: list[str], tasks: tuple[str, ...] = ("loc", "seg"),
                    weightings: tuple[str, ...] = ("volume", "count"), taus: np.ndarray | None = None,
-                   voxel_resolution: int = 96, voxel_empty_threshold: float = 0.01, assigned: np.ndarray | None = None) -> list[IoUReport]:
+                   voxel_resolution: int = VOXEL_RESOLUTION, voxel_empty_threshold: float = VOXEL_EMPTY, assigned: np.ndarray | None = None) -> list[IoUReport]:
     """Every requested (task, weighting) report for one scene.
 
     scene: GaussianScene with N Gaussians; scores: [N, L]; gt_labels: [N] int (−1 none).
