@@ -531,14 +531,39 @@ def test_missing_and_irregular_images_are_named(tmp_path, caplog):
     assert "3 frames skipped because their images are missing or not a regular file (images/gone.png, images/dir.png, images/fifo.png" in caplog.text
 
 
-def test_offline_cli_prints_one_sentence(fern3, tmp_path):
+@pytest.mark.parametrize("masks", ["sam", "slic"])
+def test_offline_cli_prints_one_sentence(fern3, tmp_path, masks):
+    """Round 104c F1: without either weight file (SAM's default masks) only CLIP's absence was said, SAM's a run
+    later; one sentence names both flags. With masks that need no weights, CLIP's alone."""
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf"), "DRSPLAT_CACHE": str(tmp_path / "cache")}
     env.pop("HF_HUB_CACHE", None)
-    proc = subprocess.run([sys.executable, "-m", "drsplat", "features", "--source", str(fern3), "--out", str(tmp_path / "f")],
+    proc = subprocess.run([sys.executable, "-m", "drsplat", "features", "--source", str(fern3), "--out", str(tmp_path / "f"), "--masks", masks],
                           capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[1], timeout=300)
     assert proc.returncode == 1
-    assert proc.stderr == f"ERROR: {OFFLINE_CLIP_MESSAGE}\n"
+    sam = (f"; and SAM weights (vit_h) are not in the cache {tmp_path / 'cache'} and cannot be downloaded; pass --sam-checkpoint PATH "
+           "to a local SAM checkpoint, or run once with internet access.")
+    assert proc.stderr == (f"ERROR: {OFFLINE_CLIP_MESSAGE.rstrip('.')}{sam}\n" if masks == "sam" else f"ERROR: {OFFLINE_CLIP_MESSAGE}\n")
     assert not (tmp_path / "f").exists()
+
+
+def test_sam_weights_out_of_reach_are_said_without_a_downloading_line(tmp_path, monkeypatch, caplog):
+    """Round 104c F1: with no network (not declared offline) "downloading SAM vit_h weights from ..." was logged just
+    before the error saying they cannot be downloaded."""
+    import logging
+
+    from drsplat.errors import WeightsUnavailableError
+    from drsplat.features import weights as weights_module
+
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    monkeypatch.delenv("DRSPLAT_OFFLINE", raising=False)
+    monkeypatch.setenv("DRSPLAT_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(weights_module, "host_reachable", lambda url, timeout=3.0: False)
+    with caplog.at_level(logging.INFO), pytest.raises(WeightsUnavailableError, match=r"SAM weights \(vit_b\) are not in the cache .* --sam-checkpoint"):
+        weights_module.resolve_sam_checkpoint("vit_b")
+    assert "downloading" not in caplog.text and not (tmp_path / "cache").exists()
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "sam_vit_b_01ec64.pth").write_bytes(b"cached")  # a cached file needs no network
+    assert weights_module.resolve_sam_checkpoint("vit_b") == tmp_path / "cache" / "sam_vit_b_01ec64.pth"
 
 
 def test_offline_sam_cli_names_the_flag(fern3, weights, tmp_path, monkeypatch, capsys):

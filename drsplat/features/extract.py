@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drsplat.errors import DrsplatError, InputError, shown_path
+from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, shown_path
 from drsplat.features import format as featurefiles
 from drsplat.features.masks import LEVELS, make_generator, MaskSet
 from drsplat.features.masks.postprocess import NmsParams, masks_update
@@ -35,6 +35,7 @@ import drsplat
 from drsplat.cameras import detect_dataset, image_folder, load_cameras, load_image_sized, unobserved_pixels
 from drsplat.features.clip import OPENAI_MEAN, OPENAI_STD, ClipEncoder, use_clip_config
 from drsplat.features.masks.sam import SamParams
+from drsplat.features.weights import sam_checkpoint_unavailable
 
 log = logging.getLogger(__name__)
 
@@ -619,9 +620,18 @@ class ModelSpec:
 
 
 def build_models(spec: ModelSpec):
-    """(mask generator, CLIP encoder) of `spec`."""
+    """(mask generator, CLIP encoder) of `spec`. SAM's weights are looked for (cache, network) before CLIP is built, so
+    that a user missing both is told of both in one error (round 104c F1: SAM's absence was said a run later)."""
     use_clip_config(spec.clip_config)
-    encoder = ClipEncoder(spec.clip_model, spec.pretrained, spec.clip_checkpoint, spec.device, spec.batch_size)
+    sam_missing = sam_checkpoint_unavailable(spec.sam_model) if spec.masks == "sam" and spec.sam_checkpoint is None else None
+    try:
+        encoder = ClipEncoder(spec.clip_model, spec.pretrained, spec.clip_checkpoint, spec.device, spec.batch_size)
+    except WeightsUnavailableError as clip_missing:
+        if sam_missing is None:
+            raise
+        raise WeightsUnavailableError(f"{str(clip_missing).rstrip('.')}; and {sam_missing}") from None
+    if sam_missing is not None:
+        raise sam_missing
     encoder.require_image_normalisation()  # before any image: SAM takes minutes an image on a CPU
     sam_params = SamParams(points_per_side=spec.sam_points_per_side, crop_n_layers=spec.sam_crop_layers)
     generator = make_generator(spec.masks, spec.sam_checkpoint, spec.sam_model, encoder.device, sam_params)

@@ -149,17 +149,29 @@ def _sam_unavailable(model_type: str, cache: Path) -> WeightsUnavailableError:
     )
 
 
-def resolve_sam_checkpoint(model_type: str = "vit_h", timeout: float = 30.0) -> Path:
-    """The official SAM checkpoint for `model_type`, downloaded once into drsplat_cache_dir()."""
+def sam_checkpoint_unavailable(model_type: str = "vit_h") -> WeightsUnavailableError | None:
+    """The error `resolve_sam_checkpoint` would raise before downloading anything (the checkpoint is neither cached
+    nor downloadable: offline, or its host unreachable), or None; checked before CLIP is built, so that a user
+    without either weight file hears of both at once (round 104c F1: SAM's absence came a run later)."""
     if model_type not in SAM_URLS:
         raise DrsplatError(f"unknown SAM model '{model_type}': use one of {', '.join(SAM_URLS)}")
+    url = SAM_URLS[model_type]
+    cache = drsplat_cache_dir()
+    if (cache / os.path.basename(url)).is_file():
+        return None
+    return _sam_unavailable(model_type, cache) if hf_offline() or not host_reachable(url) else None
+
+
+def resolve_sam_checkpoint(model_type: str = "vit_h", timeout: float = 30.0) -> Path:
+    """The official SAM checkpoint for `model_type`, downloaded once into drsplat_cache_dir()."""
+    unavailable = sam_checkpoint_unavailable(model_type)
+    if unavailable is not None:  # offline, no "downloading ..." line before it (round 104c F1)
+        raise unavailable
     url = SAM_URLS[model_type]
     cache = drsplat_cache_dir()
     path = cache / os.path.basename(url)
     if path.is_file():
         return path
-    if hf_offline():
-        raise _sam_unavailable(model_type, cache)
     log.info("downloading SAM %s weights from %s into %s", model_type, url, cache)
     try:
         with urllib.request.urlopen(url, timeout=timeout) as response, atomic_path(path) as tmp:
