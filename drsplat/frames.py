@@ -555,6 +555,9 @@ def view_picture(camera: Camera, width: int, pictures: dict, skipped: Counter) -
     # at the camera file's own size, not a --resolution's: a view of a few pixels aliases its render (round 52)
     full = camera if camera.unscaled_size is None else camera.scaled(camera.unscaled_size[0] / camera.width)
     small = full.scaled(min(1.0, width / max(full.width, full.height)))  # the longer side: a 10 x 100000 camera is no 96 x 960000 render
+    if small.width * small.height < PHOTO_MIN_PIXELS:  # no render of it could cover enough to count: not "shows nothing" (round 104b F1)
+        skipped[TOO_SMALL_VIEW] += 1
+        return small, None
     key = (camera.image_path, small.width, small.height)
     if key not in pictures:
         try:
@@ -619,6 +622,7 @@ NO_IMAGE_FILE = "with no image file"  # why `photo_agreement` left views out (it
 UNREADABLE_IMAGE = "whose image could not be read"
 OTHER_ASPECT_IMAGE = "whose image has another aspect ratio than its camera (another dataset's images, or rotated photos?)"
 LITTLE_COVERED = f"where the render covers under {PHOTO_MIN_PIXELS} pixels"
+TOO_SMALL_VIEW = f"of under {PHOTO_MIN_PIXELS} pixels, too few to compare"
 FLAT_PICTURE = "where the image or the render is one flat grey"
 EMPTY_SCENE = "of a scene with no Gaussians to render"
 NOT_ITS_IMAGE = f"whose render correlates under {PHOTO_MATCH_MIN} with its image"

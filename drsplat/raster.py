@@ -34,7 +34,7 @@ import numpy as np
 from drsplat import _raster_kernels as kernels
 from drsplat._scene_kernels import bounded_rows_kernel, gather_rows
 from drsplat._sort_kernels import sort_by_key
-from drsplat.cameras import Camera
+from drsplat.cameras import Camera, render_camera_problem
 from drsplat.scene import MAX_COORDINATE, MAX_LOG_SCALE, MAX_OPACITY_LOGIT, MAX_SH_COEFFICIENT, SH_C0, SH_COEFFICIENTS, GaussianScene
 from drsplat.defaults import DEFAULT_TOPK, NEAR
 from drsplat.utils import compiled_here, real_number, spread_rows
@@ -1026,6 +1026,7 @@ def rasterize_topk(
         raise ValueError("rasterize_topk computes ids, weights, alpha and the median only; use rasterize for rgb or depth")
     _check_args(topk, background)
     check_near(near)
+    check_camera(camera)
     _check_cpu("numba", device)
     projected = project_gaussians(scene, camera, near, mask=mask, out=None if out is None else out.projected)
     result = render_topk(projected, topk, with_median=with_median, ranked=ranked, out=out)
@@ -1235,6 +1236,13 @@ def check_near(near) -> None:
         raise ValueError(f"near: expected a positive, finite camera depth in scene units, got {near!r}")
 
 
+def check_camera(camera: Camera) -> None:
+    """ValueError naming the camera and what is wrong with it (`cameras.render_camera_problem`), the same for every engine."""
+    problem = render_camera_problem(camera)
+    if problem is not None:
+        raise ValueError(f"camera{' ' + repr(camera.name) if camera.name else ''}: {problem}")
+
+
 def rasterize(
     scene,
     camera: Camera,
@@ -1261,6 +1269,7 @@ def rasterize(
     camera.height x camera.width pixels; tests hold them to the reference (drsplat.testing).
     """
     check_near(near)
+    check_camera(camera)
     render = rasterize_numba if engine == "numba" else get_engine(engine).render_fn()
     return render(
         scene, camera, topk, with_rgb=with_rgb, with_depth=with_depth, with_median=with_median, background=background, mask=mask,

@@ -8,6 +8,7 @@ import logging
 import os
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -467,6 +468,47 @@ def test_load_image_reads_8_bit_values_stored_as_32_bit_integers_as_8_bit_and_sa
         rgb = load_image(cam)
     assert np.array_equal(rgb[..., 1], ramp.astype(np.uint8))
     assert any("view.png" in r.getMessage() and "16-bit integer pixels all within 0..255" in r.getMessage() for r in caplog.records)
+
+
+def png16(path: Path, samples: np.ndarray) -> None:
+    """A 16-bit PNG of `samples` [H, W, C] uint16 (C = 3: RGB, 4: RGBA), written by hand: Pillow writes no 16-bit colour."""
+    import struct
+
+    h, w, c = samples.shape
+    raw = b"".join(b"\x00" + samples[y].astype(">u2").tobytes() for y in range(h))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    header = struct.pack(">IIBBBBB", w, h, 16, {3: 2, 4: 6}[c], 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("channels", [3, 4], ids=["rgb", "rgba"])
+def test_load_image_reads_8_bit_values_in_a_16_bit_colour_png_as_8_bit_and_says_so(tmp_path, caplog, channels):
+    """Round 104a F2: Pillow opens a 16-bit RGB(A) PNG as 8-bit, keeping each sample's high byte, so an 8-bit photo
+    widened to uint16 and saved read as a black image, with no word (100c F4 mended the greyscale one only). True
+    16-bit samples are read as before (the high byte, as 3DGS reads them through Pillow)."""
+    from PIL import Image
+
+    from drsplat.cameras import load_image
+
+    photo = np.random.default_rng(0).integers(30, 230, (48, 64, 3)).astype(np.uint16)
+    samples = photo if channels == 3 else np.concatenate([photo, np.full((48, 64, 1), 255, np.uint16)], axis=2)
+    cam = load_cameras(_one_camera_dataset(tmp_path / "c", Image.fromarray(np.zeros((48, 64, 3), np.uint8))))[0]
+    png16(cam.image_path, samples)
+    with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
+        assert np.array_equal(load_image(cam), photo.astype(np.uint8))
+    assert any("view.png" in r.getMessage() and "16-bit colour samples all within 0..255" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    png16(cam.image_path, samples * 257)  # true 16-bit: v * 257 has the high byte v
+    with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
+        assert np.array_equal(load_image(cam), photo.astype(np.uint8))
+    assert not caplog.records
+    png16(cam.image_path, np.zeros_like(samples))  # a black image stays black, without a word
+    with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
+        assert not load_image(cam).any()
+    assert not caplog.records
 
 
 def test_load_image_refuses_an_image_of_another_aspect_and_names_exif_rotation(tmp_path):

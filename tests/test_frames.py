@@ -17,7 +17,7 @@ from drsplat.commands.common import load_registered
 from drsplat.errors import InputError
 from drsplat.frames import (LOW_SEEN_FRACTION, PHOTO_MATCH_MIN, FrameMove, cameras_in_scene_frame, grey_correlation, gsplat_normalizations,
                             move_points, over_fitted_background, photo_agreement, principal_axes, up_and_scale)
-from drsplat.raster import prepare_scene, share_in_some_view
+from drsplat.raster import prepare_scene, rasterize, share_in_some_view
 from drsplat.scene import load_ply, quat_to_rotmat, save_ply
 from drsplat.testing import cameras_with_own_images, with_floaters
 from drsplat.synthetic import rotmat_to_quat
@@ -895,6 +895,27 @@ def test_a_scene_that_no_training_view_shows_is_warned_about_before_the_views(ti
     assert caplog.text == ""  # no image to compare: nothing said of the scene
 
 
+def test_views_too_small_to_compare_are_not_said_to_show_nothing(tiny_seed0, tmp_path, caplog):
+    """Round 104b F1: views of under PHOTO_MIN_PIXELS pixels (7x5) that the scene fills were counted as covering too
+    little, and all of them so: "none of the training views checked shows the scene ... another frame". They are too
+    small to compare, which the debug line says; a scene far from such views is not warned about either."""
+    import drsplat.frames as frames
+    from PIL import Image
+
+    scene, _, cams, _ = tiny_seed0
+    small = []
+    for i, cam in enumerate(cams[:4]):
+        tiny_cam = cam.scaled(7 / cam.width)
+        Image.fromarray(np.full((tiny_cam.height, tiny_cam.width, 3), 128, np.uint8)).save(tmp_path / f"s{i}.png")
+        small.append(dataclasses.replace(tiny_cam, image_path=tmp_path / f"s{i}.png", unscaled_size=None))
+    assert all(c.width * c.height < frames.PHOTO_MIN_PIXELS for c in small)
+    assert all((rasterize(scene, c, 1).alpha >= 0.5).sum() >= 0.5 * c.width * c.height for c in small)  # the scene fills them
+    with caplog.at_level(logging.DEBUG, logger="drsplat.frames"):
+        frames.warn_if_scene_misses_its_images(scene, small)
+    assert "shows the scene" not in caplog.text and "another frame" not in caplog.text, caplog.text
+    assert f"4 views {frames.TOO_SMALL_VIEW}" in caplog.text, caplog.text
+
+
 def test_the_frame_check_bounds_the_longer_side_of_a_tall_camera(tmp_path, monkeypatch):
     """Read-through: the check scaled a view to 96 px wide, so a 10 x 100000 camera (and image) would
     have been rendered at 10 x 100000 pixels, 4x4 samples each; the longer side is what is bounded."""
@@ -904,8 +925,9 @@ def test_the_frame_check_bounds_the_longer_side_of_a_tall_camera(tmp_path, monke
     from drsplat.cameras import look_at_camera
     from drsplat.scene import GaussianScene
 
-    Image.new("RGB", (10, 4000), (90, 90, 90)).save(tmp_path / "tall.png")
-    cam = dataclasses.replace(look_at_camera(np.array([0.0, 0.0, -3.0]), np.zeros(3), 10, 4000, 1.0, name="tall"), image_path=tmp_path / "tall.png")
+    # 100 x 4000: at 96 px on the longer side still over PHOTO_MIN_PIXELS (a 10 x 4000 one is 1 x 96, too few to compare)
+    Image.new("RGB", (100, 4000), (90, 90, 90)).save(tmp_path / "tall.png")
+    cam = dataclasses.replace(look_at_camera(np.array([0.0, 0.0, -3.0]), np.zeros(3), 100, 4000, 1.0, name="tall"), image_path=tmp_path / "tall.png")
     scene = GaussianScene(means=np.zeros((1, 3), np.float32), quats=np.float32([[1, 0, 0, 0]]), log_scales=np.zeros((1, 3), np.float32),
                           opacity_logits=np.zeros(1, np.float32), sh=np.zeros((1, 1, 3), np.float32))
     sizes = []
