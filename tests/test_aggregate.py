@@ -746,7 +746,7 @@ def test_view_hook_survives_pickling(hard_tiny):
 
 @pytest.mark.parametrize("damage", ["not a zip", "views is an array", "header claims 1e12 floats", "negative views", "binary header", "missing",
                                     "compression method 99", "encrypted flag", "another run's", "an earlier drsplat's", "views inf",
-                                    "log key inf"])
+                                    "log key inf", "peak nan", "total inf", "views_seen negative", "views_seen past views", "total float32"])
 def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_path, damage, caplog):
     """A damaged or foreign `.aggregate.npz` beside the log: one warning, the run starts over and equals a
     fresh one (its headers are checked before anything is read, so a huge shape cannot allocate). The warning
@@ -774,6 +774,14 @@ def test_damaged_statistics_snapshot_restarts_with_one_warning(hard_tiny, tmp_pa
         np.savez(snapshot.open("wb"), **{**arrays, ("views" if damage == "views inf" else "log_key"): np.float64(np.inf)})
     elif damage == "negative views":
         np.savez(snapshot.open("wb"), **{**arrays, "views": np.int64(-3)})
+    elif damage in ("peak nan", "total inf", "views_seen negative", "views_seen past views", "total float32"):
+        # round 104a F1: values no registration writes, under an intact key, were folded in without a word
+        name = damage.split()[0]
+        value = {"peak nan": np.nan, "total inf": np.inf, "views_seen negative": -5, "views_seen past views": int(arrays["views"]) + 1}.get(damage)
+        changed = arrays[name].astype(np.float32) if damage == "total float32" else arrays[name].copy()
+        if value is not None:
+            changed[np.flatnonzero(arrays["views_seen"] > 0)[:3]] = value
+        np.savez(snapshot.open("wb"), **{**arrays, name: changed})
     elif damage == "missing":
         snapshot.unlink()
     elif damage == "an earlier drsplat's":  # round 102a F3: a snapshot without the log's key was called damaged
