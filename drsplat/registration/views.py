@@ -370,7 +370,15 @@ def level_count_note(levels: dict[str, int], level: int) -> str | None:
         (count, views), = multi.items()
         return (f"the mask files of {counted(views, 'view', 'views')} have {count} levels, not LangSplat's {len(LEVELS)} ({', '.join(LEVELS)}): "
                 f"level {level} is read as each file's level {level} by index, whatever mask scale it holds there{named}")
-    layouts = ", ".join(f"{counted(views, 'view', 'views')} {count}" for count, views in sorted(multi.items()))
+    usual = max(sorted(multi), key=lambda count: multi[count])  # the layout most views have; the others' files are named (round 104a F3)
+
+    def layout(count: int, views: int) -> str:
+        if count == usual:
+            return f"{counted(views, 'view', 'views')} {count}"
+        files = sorted(name for name, c in levels.items() if c == count)
+        return f"{counted(views, 'view', 'views')} {count}: {', '.join(files[:3])}{', ...' if len(files) > 3 else ''}"
+
+    layouts = "; ".join(layout(count, views) for count, views in sorted(multi.items()))
     return (f"the views' mask files have different numbers of levels ({layouts}): level {level} is each file's level {level} by index, "
             f"a different mask scale in files of another layout{named}; remake the features so every view has the same levels")
 
