@@ -320,7 +320,7 @@ def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights, c
     assert main(args) == 1 and featurefiles.is_valid_pair(out, "a") and (out / STAMP_JOURNAL).exists()
     # round 100c F3: the stop said only the file's error; a Ctrl-C's line says the finished images are kept
     err = capsys.readouterr().err
-    assert "b.png" in err and f"the images finished before it (1) are kept in {out}, and the same command resumes from them" in err, err
+    assert "b.png" in err and f"the features of 1 other image are kept in {out}, and the same command resumes from them" in err, err
     first = np.load(featurefiles.feat_path(out, "a"))
     gradient = Image.fromarray(np.tile(np.linspace(0, 255, 64).astype(np.uint8)[None, :, None], (48, 1, 3)))
     gradient.save(src / "images" / "a.png")  # re-exported while fixing b
@@ -331,6 +331,13 @@ def test_an_image_edited_after_a_run_that_stopped_is_redone(tmp_path, weights, c
     assert not (out / STAMP_JOURNAL).exists() and set(featurefiles.read_manifest(out)["image_stamps"]) == {"a", "b"}
     before = mtimes(out)
     assert main(args) == 0 and mtimes(out) == before  # and then kept
+    # round 104a F4: every *_f.npy was counted as an image finished before the failing one, its own stale pair too
+    capsys.readouterr()
+    (src / "images" / "a.png").write_bytes(b"not a png either")  # the first image now, with a whole pair of its old self
+    (out / "c_f.npy").write_bytes(b"half")  # and a half pair of no camera
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "a.png" in err and f"the features of 1 other image are kept in {out}" in err, err
 
 
 def test_a_pair_written_just_before_a_kill_is_made_again(tmp_path, weights):

@@ -83,11 +83,22 @@ def finished_images_said(out: Path, cameras) -> Iterator[None]:
     try:
         yield
     except InputError as exc:
-        kept = finished_images(out) if exc.path in images else 0
+        kept = other_images_kept(out, cameras, exc.path) if exc.path in images else 0
         if not kept:
             raise
-        raise DrsplatError(f"{exc}; the images finished before it ({kept:,}) are kept in {shown_path(out)}, and the same command "
-                           "resumes from them") from exc
+        raise DrsplatError(f"{exc}; the features of {kept:,} other image{'s' if kept != 1 else ''} are kept in {shown_path(out)}, and "
+                           "the same command resumes from them") from exc
+
+
+def other_images_kept(out: Path, cameras, failed: Path) -> int:
+    """The images of `cameras`, other than the one at `failed`, whose pairs in `out` are whole (round 104a F4: every
+    *_f.npy was counted as an image "finished before" the failing one, its own stale pair, half-written ones and
+    those of other runs' images too)."""
+    from drsplat.features.format import is_valid_pair
+
+    if not out.is_dir():
+        return 0
+    return sum(1 for cam in cameras if cam.image_path is not None and cam.image_path != failed and is_valid_pair(out, cam.name))
 
 
 def refuse_image_folder(out: Path, cameras) -> None:
