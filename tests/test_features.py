@@ -891,8 +891,9 @@ def test_features_says_which_images_gave_nothing_useful(tmp_path, weights, capsy
     src = _one_camera_dataset(tmp_path / "off", Image.fromarray(rng.integers(0, 255, (49, 66, 3), dtype=np.uint8)))
     assert main(slic_features_argv(src, tmp_path / "features_off", weights)) == 0
     err = capsys.readouterr().err
-    assert ("1 image file(s) are neither their camera's size nor a power-of-two fraction of it (as images_2, _4, _8 are) and were "
-            "resized to it (the first: view, 66x49 for camera 64x48)") in err, err
+    # round 104a F5: "nor a power-of-two fraction of it" since multiples are accepted too (100c F2)
+    assert ("1 image file(s) are neither their camera's size nor a power-of-two fraction or multiple of it (as images_2, _4, _8 are, "
+            "or full-size photos beside their cameras) and were resized to it (the first: view, 66x49 for camera 64x48)") in err, err
 
 
 def test_a_foreign_manifest_in_the_output_folder_is_named_as_such(tmp_path, weights, capsys):

@@ -75,7 +75,7 @@ class FeatureReport:
     without_masks: list[str] = field(default_factory=list)  # written with no mask at all: registration gets nothing from them
     flat: list[str] = field(default_factory=list)  # images of one colour (blank exports, a fully transparent PNG's RGB)
     upsampled: list[tuple[str, str, float]] = field(default_factory=list)  # (stem, "file WxH to camera WxH", factor) past UPSAMPLE_NOTE
-    off_size: list[tuple[str, str]] = field(default_factory=list)  # (stem, "file WxH for camera WxH"): no power-of-two fraction of it
+    off_size: list[tuple[str, str]] = field(default_factory=list)  # (stem, "file WxH for camera WxH"): not its size times 2^j
     unobserved: list[tuple[str, float]] = field(default_factory=list)  # (stem, share of its pixels): undistorted views' pixels no photo saw
 
     def notes(self) -> list[str]:
@@ -100,8 +100,8 @@ class FeatureReport:
                        f"file; the most: {stem}, {100 * share:.3g} %): they got no mask, so they lift nothing")
         if self.off_size:
             stem, sizes = self.off_size[0]
-            out.append(f"{len(self.off_size)} image file(s) are neither their camera's size nor a power-of-two fraction of it (as "
-                       f"images_2, _4, _8 are) and were resized to it (the first: {stem}, {sizes}): are they the photos from before "
+            out.append(f"{len(self.off_size)} image file(s) are neither their camera's size nor a power-of-two fraction or multiple "
+                       f"of it (as images_2, _4, _8 are, or full-size photos beside their cameras) and were resized to it (the first: {stem}, {sizes}): are they the photos from before "
                        "`colmap image_undistorter`, beside its cameras? Their lens distortion would then never be removed")
         return out
 
@@ -119,7 +119,7 @@ def note_image(report: FeatureReport, cam, rgb: np.ndarray, file_size: tuple[int
     """Count in `report` an image of one flat colour (every pixel of rgb [H, W, 3], the image at its
     camera's size, the same), an image file (file_size: its stored width, height) over
     UPSAMPLE_NOTE times narrower than its camera, and one of neither its camera's size nor a
-    power-of-two fraction of it (`off_power_of_two`: round 57b, the distorted photos beside the
+    power-of-two fraction or multiple of it (`off_power_of_two`: round 57b, the distorted photos beside the
     cameras of `colmap image_undistorter` were resized to them without a word)."""
     if rgb.size and (rgb == rgb.reshape(-1, rgb.shape[-1])[0]).all():
         report.flat.append(cam.name)
