@@ -553,7 +553,7 @@ def _mislabel_scene(rng, close_up: float = 1.0):
     return a, b, views
 
 
-def test_a_mislabelled_mask_is_dropped_and_the_rest_kept():
+def test_a_mislabelled_mask_is_dropped_and_the_rest_kept(caplog):
     """The mislabelled mask is contradicted by four other views of each of its Gaussians: dropped; the
     paper's mean of Gaussians 0-4 leans to B (a close-up), the checked sums are A's alone. Every
     correct mask is kept, and the other Gaussians' sums are the paper's bit for bit."""
@@ -563,7 +563,10 @@ def test_a_mislabelled_mask_is_dropped_and_the_rest_kept():
     for view in views:
         sink.add(view)
         paper.add(view)
-    (block,), (plain,) = list(sink.blocks()), list(paper.blocks())
+    with caplog.at_level(logging.DEBUG, logger="drsplat.registration.check"):
+        (block,), (plain,) = list(sink.blocks()), list(paper.blocks())
+    # round 104d: -v did not name the masks dropped (a view's row of its embeddings file)
+    assert "mask check: dropped view v4 row 0 of its _f.npy" in caplog.text, caplog.text
     assert sink.verdicts.dropped == 1 and not sink.verdicts.keep[4][0] and all(k.all() for k in sink.verdicts.keep[:4])
     assert (plain.F[:5] @ b > plain.F[:5] @ a).all()
     np.testing.assert_allclose(block.F[:5], np.broadcast_to(4 * a, (5, D)), atol=1e-5)
@@ -1311,3 +1314,15 @@ def test_one_view_alone_is_said_to_have_no_other_view_not_masks_that_do_not_grou
     with caplog.at_level(logging.INFO, logger="drsplat.registration.check"):
         verdicts, _ = _judge([one, dataclasses.replace(one, name="v1")], 40)
     assert verdicts.grouped and "skipped" not in caplog.text
+
+
+def test_the_dropped_masks_are_named_view_by_view():
+    """The debug line names each view's dropped rows (present, not kept); masks without a pair are not 'dropped'."""
+    from drsplat.registration.check import dropped_masks_text
+
+    keep = [np.array([True, False, True, False]), np.array([True, True]), np.array([False, True])]
+    present = [np.array([True, True, True, True]), np.array([True, True]), np.array([True, True])]
+    assert dropped_masks_text(["a", "b", "c"], keep, present) == "view a rows 1, 3 of its _f.npy; view c row 0 of its _f.npy"
+    present[0][3] = False  # no pair: kept or not, nothing was dropped
+    assert dropped_masks_text(["a", "b", "c"], keep, present) == "view a row 1 of its _f.npy; view c row 0 of its _f.npy"
+    assert dropped_masks_text(["a"], [np.ones(2, bool)], [np.ones(2, bool)]) == "no mask"

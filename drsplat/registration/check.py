@@ -1367,6 +1367,17 @@ class KeptPairs:
         return clusters
 
 
+def dropped_masks_text(names: list[str], keep: list[np.ndarray], present: list[np.ndarray]) -> str:
+    """The masks the check dropped, view by view: "view v003 rows 4, 17 of its _f.npy; view v011 row 2" (rows of the
+    view's embeddings file, which its mask-id file's ids name; round 104d: `-v` could not tell which masks went)."""
+    parts = []
+    for name, kept, there in zip(names, keep, present):
+        rows = np.flatnonzero(there & ~kept)
+        if rows.size:
+            parts.append(f"view {name} row{'s' if rows.size > 1 else ''} {', '.join(str(int(r)) for r in rows)} of its _f.npy")
+    return "; ".join(parts) or "no mask"
+
+
 class CheckSink:
     """A sink (drsplat.registration.sink) whose blocks are the mode's sums of the pairs the check keeps.
 
@@ -1412,6 +1423,7 @@ class CheckSink:
         self._views_with_pairs = 0
         self._largest_view_weight = 0.0  # the most pair weight one view added (`_check_range`)
         self._views_added = 0
+        self._view_names: list[str] = []  # in the order added, for the debug line naming the masks dropped
 
     @property
     def num_blocks(self) -> int:
@@ -1435,6 +1447,7 @@ class CheckSink:
                 raise ValueError(f"view {view.name!r}: {bad} of its {view.weights.size} pair weights are NaN, infinite or negative; "
                                  "the check takes finite weights >= 0 (w = T·alpha summed per mask)")
         self._check_range(view)
+        self._view_names.append(view.name)
         present = view.present_masks()
         self.clusters.add(view.feats, present)
         self._with_pairs += int(np.count_nonzero(present))
@@ -1472,7 +1485,10 @@ class CheckSink:
             log.info("mask check: %d of %d masks dropped (%d judged: of %g pixels of weight or more, with enough other views; %d dropped as large masks whose label "
                      "the other views give only to their boundary; like cosine %s)",
                      self.verdicts.dropped, self.verdicts.present, self.verdicts.judged, CHECK_MIN_MASS, self.verdicts.dropped_large, like)
-            self._kept = KeptPairs(self._source, self.verdicts.keep, [ids >= 0 for ids in self.clusters.per_view])
+            present = [ids >= 0 for ids in self.clusters.per_view]
+            if self.verdicts.dropped and log.isEnabledFor(logging.DEBUG):
+                log.debug("mask check: dropped %s", dropped_masks_text(self._view_names, self.verdicts.keep, present))
+            self._kept = KeptPairs(self._source, self.verdicts.keep, present)
         return self._kept
 
     def _ungrouped_verdicts(self) -> MaskVerdicts | None:
