@@ -15,6 +15,7 @@ import os
 import posixpath
 import re
 import struct
+import sys
 import unicodedata
 import warnings
 import zlib
@@ -2481,6 +2482,9 @@ def load_image_sized(camera: Camera) -> tuple[np.ndarray, tuple[int, int]]:
     except Image.DecompressionBombError as exc:
         raise InputError(path, f"is not a readable image: {exc}") from None
     except (OSError, *PILLOW_DECODE_ERRORS) as exc:  # Pillow reports malformed chunks with these too, not only OSError
+        if isinstance(exc, Image.UnidentifiedImageError) and starts_as_tiff(path):  # round 105b F4: read as a damaged file
+            raise InputError(path, "is a TIFF of a sample layout Pillow cannot decode (float or 32-bit colour, half floats, 16-bit grey "
+                                   "with alpha are not): save it as an 8- or 16-bit RGB image") from None
         raise InputError(path, f"is not a readable image ({exc.__class__.__name__}: {exc})") from None
     file_size = (rgb.shape[1], rgb.shape[0])
     if camera.distortion is not None:
@@ -2488,6 +2492,18 @@ def load_image_sized(camera: Camera) -> tuple[np.ndarray, tuple[int, int]]:
     if file_size == (camera.width, camera.height):
         return rgb, file_size
     return np.asarray(Image.fromarray(rgb).resize((camera.width, camera.height), Image.BICUBIC)), file_size
+
+
+TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # little- and big-endian TIFF, then BigTIFF
+
+
+def starts_as_tiff(path: Path) -> bool:
+    """Whether the file at `path` starts as a TIFF (False when it cannot be read)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) in TIFF_MAGICS
+    except OSError:
+        return False
 
 
 def check_image_framing(path: Path, im, camera: Camera) -> None:
@@ -2534,40 +2550,67 @@ def rgb_pixels(path: Path, im) -> np.ndarray:
                 scaled = values
         grey = np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
         return np.repeat(grey[..., None], 3, axis=2)
-    wide = sixteen_bit_colour_png(im)  # read before decoding: Pillow empties `tile` once it has loaded the pixels
-    rgb = np.asarray(im.convert("RGB") if mode != "RGB" else im)
+    wide = wide_sample_tiles(im)  # read before decoding: Pillow empties `tile` once it has loaded the pixels
+    rgb = np.asarray(_rgb_image(im))
     if wide is not None and not rgb.any():
-        low = png_low_bytes(path, wide)
-        if low.any():  # round 104a F2: black as read, it was embedded as black
-            log.warning("%s: 16-bit colour samples all within 0..255, read as 8-bit values (as 16-bit they would be black)", path)
+        low = low_sample_bytes(path)
+        if low.any():  # round 104a F2, 105b F1 / F2: black as read, it was embedded as black
+            log.warning("%s: 16-bit samples all within 0..255, read as 8-bit values (as 16-bit they would be black)", path)
             return low
     return rgb
 
 
-PNG_WIDE_COLOUR = {"RGB;16B": "RGB;16L", "RGBA;16B": "RGBA;16L"}  # Pillow's raw modes of a 16-bit colour PNG -> its sample's low byte
+def _rgb_image(im):
+    """An open PIL image as RGB. A palette with transparency goes through RGBA (the same colours): converted to RGB
+    directly, Pillow warns that it "should be converted to RGBA", which drsplat logged once an image (round 105b F3)."""
+    if im.mode == "RGB":
+        return im
+    if im.mode == "P" and "transparency" in im.info:
+        return im.convert("RGBA").convert("RGB")
+    return im.convert("RGB")
 
 
-def sixteen_bit_colour_png(im) -> tuple | None:
-    """The decoder tile of an open, not yet loaded PIL image when it is a 16-bit RGB or RGBA PNG, else None. Pillow opens
-    such a file as 8-bit RGB(A), keeping each big-endian sample's high byte (3DGS and LangSplat read the same bytes, by
-    Pillow and by cv2's >> 8)."""
-    tiles = getattr(im, "tile", None) or []
-    if im.format != "PNG" or len(tiles) != 1:
-        return None
-    tile = tuple(tiles[0])
-    return tile if len(tile) == 4 and tile[3] in PNG_WIDE_COLOUR else None
+_NATIVE_LOW = "B" if sys.byteorder == "little" else "L"  # the raw mode reading the other byte of a native-order ("N") sample
+# Pillow's raw modes of 16-bit samples that it reads as 8-bit by their high byte -> the raw mode reading the same bytes'
+# other byte, the low one. LA;16B (a grey + alpha PNG) has no such mode: its 4 bytes a pixel read as 8-bit RGBA put the
+# grey sample's low byte in G
+LOW_BYTE_RAW_MODES = {"RGB;16B": "RGB;16L", "RGB;16L": "RGB;16B", "RGB;16N": f"RGB;16{_NATIVE_LOW}",
+                      "RGBA;16B": "RGBA;16L", "RGBA;16L": "RGBA;16B", "RGBA;16N": f"RGBA;16{_NATIVE_LOW}", "LA;16B": "RGBA"}
 
 
-def png_low_bytes(path: Path, tile: tuple) -> np.ndarray:
-    """[h, w, 3] uint8: the low byte of each colour sample of the 16-bit PNG at `path` whose decoder tile is `tile`
-    (`sixteen_bit_colour_png`): the file decoded again with Pillow's little-endian raw mode, which takes the second
-    byte of each 16-bit sample, here the low one (PNG stores them big-endian)."""
+def _raw_mode(tile) -> str | None:
+    """The raw mode of a PIL decoder tile (its args: the mode itself for PNG, a tuple starting with it for TIFF)."""
+    args = tuple(tile)[3] if len(tuple(tile)) == 4 else None
+    if isinstance(args, tuple) and args:
+        args = args[0]
+    return args if isinstance(args, str) else None
+
+
+def wide_sample_tiles(im) -> list | None:
+    """The decoder tiles of an open, not yet loaded PIL image whose 16-bit samples Pillow reads as 8-bit by their high
+    byte (16-bit RGB or RGBA PNG and TIFF, 16-bit grey + alpha PNG: 3DGS reads the same bytes through Pillow, LangSplat
+    through cv2's >> 8), else None."""
+    tiles = list(getattr(im, "tile", None) or [])
+    return tiles if tiles and all(_raw_mode(t) in LOW_BYTE_RAW_MODES for t in tiles) else None
+
+
+def low_sample_bytes(path: Path) -> np.ndarray:
+    """[h, w, 3] uint8: the low byte of each colour (or grey) sample of the 16-bit image at `path` (`wide_sample_tiles`),
+    the file decoded again by Pillow with each tile's raw mode swapped for the one reading the other byte."""
     from PIL import Image
 
-    codec, extents, offset, rawmode = tile
     with Image.open(path) as again:
-        again.tile = [(codec, extents, offset, PNG_WIDE_COLOUR[rawmode])]
-        return np.asarray(again.convert("RGB") if again.mode != "RGB" else again)
+        grey_alpha = any(_raw_mode(t) == "LA;16B" for t in again.tile)
+        again.tile = [_with_raw_mode(t, LOW_BYTE_RAW_MODES[_raw_mode(t)]) for t in again.tile]
+        pixels = np.asarray(again)
+    return np.repeat(pixels[..., 1:2], 3, axis=2) if grey_alpha else np.ascontiguousarray(pixels[..., :3])
+
+
+def _with_raw_mode(tile, raw_mode: str):
+    """`tile` decoding with `raw_mode` (Pillow's tiles are named tuples since Pillow 11, plain ones before)."""
+    args = tuple(tile)[3]
+    args = (raw_mode, *args[1:]) if isinstance(args, tuple) else raw_mode
+    return tile._replace(args=args) if hasattr(tile, "_replace") else (*tuple(tile)[:3], args)
 
 
 # ----------------------------------------------------------------------------- look-at cameras

@@ -478,7 +478,7 @@ def test_load_image_reads_8_bit_values_stored_as_32_bit_integers_as_8_bit_and_sa
 
 
 def png16(path: Path, samples: np.ndarray) -> None:
-    """A 16-bit PNG of `samples` [H, W, C] uint16 (C = 3: RGB, 4: RGBA), written by hand: Pillow writes no 16-bit colour."""
+    """A 16-bit PNG of `samples` [H, W, C] uint16 (C = 2: grey + alpha, 3: RGB, 4: RGBA), written by hand: Pillow writes no 16-bit colour."""
     import struct
 
     h, w, c = samples.shape
@@ -487,35 +487,98 @@ def png16(path: Path, samples: np.ndarray) -> None:
     def chunk(kind: bytes, data: bytes) -> bytes:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
 
-    header = struct.pack(">IIBBBBB", w, h, 16, {3: 2, 4: 6}[c], 0, 0, 0)
+    header = struct.pack(">IIBBBBB", w, h, 16, {2: 4, 3: 2, 4: 6}[c], 0, 0, 0)
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
 
 
-@pytest.mark.parametrize("channels", [3, 4], ids=["rgb", "rgba"])
-def test_load_image_reads_8_bit_values_in_a_16_bit_colour_png_as_8_bit_and_says_so(tmp_path, caplog, channels):
-    """Round 104a F2: Pillow opens a 16-bit RGB(A) PNG as 8-bit, keeping each sample's high byte, so an 8-bit photo
-    widened to uint16 and saved read as a black image, with no word (100c F4 mended the greyscale one only). True
-    16-bit samples are read as before (the high byte, as 3DGS reads them through Pillow)."""
+def tiff(path: Path, samples: np.ndarray, sample_format: int = 1, byteorder: str = "<") -> None:
+    """A baseline uncompressed TIFF of `samples` [H, W, C] (one strip, chunky), written by hand: Pillow writes no 16-bit
+    colour TIFF. sample_format: 1 unsigned integer, 3 float."""
+    import struct
+
+    h, w, c = samples.shape
+    data = samples.astype(samples.dtype.newbyteorder(byteorder)).tobytes()
+    bits = samples.dtype.itemsize * 8
+    entries = [(256, 3, 1, w), (257, 3, 1, h), (258, 3, c, None), (259, 3, 1, 1), (262, 3, 1, 2 if c >= 3 else 1), (273, 4, 1, None),
+               (277, 3, 1, c), (278, 3, 1, h), (279, 4, 1, len(data)), (284, 3, 1, 1), (339, 3, c, None)]
+    if c in (2, 4):
+        entries.append((338, 3, 1, 2))  # ExtraSamples: unassociated alpha
+    entries.sort()
+    ifd_at = 8
+    extra_at = ifd_at + 2 + 12 * len(entries) + 4
+    bits_at, format_at = extra_at, extra_at + 2 * c
+    data_at = format_at + 2 * c
+    ifd = struct.pack(byteorder + "H", len(entries))
+    for tag, kind, count, value in entries:
+        value = {258: bits_at, 339: format_at, 273: data_at}.get(tag, value) if value is None or tag == 273 else value
+        inline = count * (2 if kind == 3 else 4) <= 4
+        packed = struct.pack(byteorder + ("H2x" if kind == 3 else "I"), value) if inline else struct.pack(byteorder + "I", value)
+        ifd += struct.pack(byteorder + "HHI", tag, kind, count) + packed
+    ifd += struct.pack(byteorder + "I", 0)
+    head = (b"II*\x00" if byteorder == "<" else b"MM\x00*") + struct.pack(byteorder + "I", ifd_at)
+    tail = struct.pack(byteorder + f"{c}H", *[bits] * c) + struct.pack(byteorder + f"{c}H", *[sample_format] * c)
+    path.write_bytes(head + ifd + tail + data)
+
+
+@pytest.mark.parametrize("kind", ["rgb", "rgba", "grey alpha", "tiff rgb", "tiff rgb big-endian"])
+def test_load_image_reads_8_bit_values_in_16_bit_colour_as_8_bit_and_says_so(tmp_path, caplog, kind):
+    """Round 104a F2, 105b F1 / F2: Pillow opens a 16-bit RGB(A) PNG or TIFF, or a 16-bit grey + alpha PNG, as 8-bit,
+    keeping each sample's high byte, so an 8-bit photo widened to uint16 and saved read as a black image, with no word
+    (100c F4 mended the plain grey one only). True 16-bit samples are read as before (the high byte, as 3DGS reads
+    them through Pillow), and a black file stays black without a word."""
     from PIL import Image
 
     from drsplat.cameras import load_image
 
     photo = np.random.default_rng(0).integers(30, 230, (48, 64, 3)).astype(np.uint16)
-    samples = photo if channels == 3 else np.concatenate([photo, np.full((48, 64, 1), 255, np.uint16)], axis=2)
-    cam = load_cameras(_one_camera_dataset(tmp_path / "c", Image.fromarray(np.zeros((48, 64, 3), np.uint8))))[0]
-    png16(cam.image_path, samples)
+    if kind == "grey alpha":
+        photo = np.repeat(photo[..., :1], 3, axis=2)
+    opaque = np.full((48, 64, 1), 255, np.uint16)
+    samples = {"rgb": photo, "rgba": np.concatenate([photo, opaque], axis=2), "grey alpha": np.concatenate([photo[..., :1], opaque], axis=2)}.get(kind, photo)
+    suffix = ".tif" if kind.startswith("tiff") else ".png"
+    placeholder = np.zeros((48, 64), np.float32) if suffix == ".tif" else np.zeros((48, 64, 3), np.uint8)  # a float image is saved as TIFF
+    cam = load_cameras(_one_camera_dataset(tmp_path / "c", Image.fromarray(placeholder)))[0]
+    assert cam.image_path.suffix == suffix
+
+    def write(values: np.ndarray) -> None:
+        if suffix == ".png":
+            png16(cam.image_path, values)
+        else:
+            tiff(cam.image_path, values, byteorder=">" if "big" in kind else "<")
+
+    write(samples)
     with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
         assert np.array_equal(load_image(cam), photo.astype(np.uint8))
-    assert any("view.png" in r.getMessage() and "16-bit colour samples all within 0..255" in r.getMessage() for r in caplog.records)
+    assert any(f"view{suffix}" in r.getMessage() and "16-bit samples all within 0..255" in r.getMessage() for r in caplog.records), caplog.text
     caplog.clear()
-    png16(cam.image_path, samples * 257)  # true 16-bit: v * 257 has the high byte v
+    write(samples * 257)  # true 16-bit: v * 257 has the high byte v
     with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
         assert np.array_equal(load_image(cam), photo.astype(np.uint8))
     assert not caplog.records
-    png16(cam.image_path, np.zeros_like(samples))  # a black image stays black, without a word
+    write(np.zeros_like(samples))  # a black image stays black, without a word
     with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
         assert not load_image(cam).any()
     assert not caplog.records
+
+
+def test_load_image_names_a_tiff_pillow_cannot_decode_and_takes_a_transparent_palette_quietly(tmp_path, caplog):
+    """Round 105b F3: a palette PNG with transparency logged Pillow's "should be converted to RGBA" once an image
+    (its pixels right); F4: a float-colour TIFF failed with Pillow's "cannot identify image file", read as damaged."""
+    from PIL import Image
+
+    from drsplat.cameras import load_image
+    from drsplat.errors import InputError
+
+    palette = Image.fromarray(np.tile(np.arange(64, dtype=np.uint8)[None, :], (48, 1)), mode="L").convert("P")
+    palette.info["transparency"] = 3
+    cam = load_cameras(_one_camera_dataset(tmp_path / "p", palette))[0]
+    with caplog.at_level(logging.WARNING):
+        rgb = load_image(cam)
+    assert np.array_equal(rgb, np.asarray(Image.open(cam.image_path).convert("RGB"))) and not caplog.records, caplog.text
+    cam = load_cameras(_one_camera_dataset(tmp_path / "f", Image.fromarray(np.zeros((48, 64), np.float32))))[0]
+    tiff(cam.image_path, np.full((48, 64, 3), 0.5, np.float32), sample_format=3)
+    with pytest.raises(InputError, match=r"view.tif: is a TIFF of a sample layout Pillow cannot decode .* save it as an 8- or 16-bit RGB image"):
+        load_image(cam)
 
 
 def test_load_image_refuses_an_image_of_another_aspect_and_names_exif_rotation(tmp_path):
