@@ -904,7 +904,8 @@ def render_camera_problem(camera: Camera) -> str | None:
     non-finite)."""
     for side in ("width", "height"):
         value = getattr(camera, side)
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        whole = isinstance(value, (int, np.integer)) or (isinstance(value, (float, np.floating)) and float(value).is_integer())
+        if isinstance(value, bool) or not whole or value < 1:  # 64.0 is whole (round 105a F3: refused as "not a whole number")
             return f"{side} must be a whole number of pixels, at least 1, got {value!r}"
     for name in ("fx", "fy"):
         value = float(getattr(camera, name))

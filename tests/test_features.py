@@ -643,18 +643,21 @@ def test_missing_and_irregular_images_are_named(tmp_path, caplog):
     assert "3 frames skipped because their images are missing or not a regular file (images/gone.png, images/dir.png, images/fifo.png" in caplog.text
 
 
-@pytest.mark.parametrize("masks", ["sam", "slic"])
+@pytest.mark.parametrize("masks", ["sam", "slic", "sam checkpoint missing"])
 def test_offline_cli_prints_one_sentence(fern3, tmp_path, masks):
     """Round 104c F1: without either weight file (SAM's default masks) only CLIP's absence was said, SAM's a run
     later; one sentence names both flags. With masks that need no weights, CLIP's alone."""
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_HOME": str(tmp_path / "hf"), "DRSPLAT_CACHE": str(tmp_path / "cache")}
     env.pop("HF_HUB_CACHE", None)
-    proc = subprocess.run([sys.executable, "-m", "drsplat", "features", "--source", str(fern3), "--out", str(tmp_path / "f"), "--masks", masks],
+    flags = ["--masks", "slic"] if masks == "slic" else ["--sam-checkpoint", str(tmp_path / "none.pth")] if "missing" in masks else []
+    proc = subprocess.run([sys.executable, "-m", "drsplat", "features", "--source", str(fern3), "--out", str(tmp_path / "f"), *flags],
                           capture_output=True, text=True, env=env, cwd=Path(__file__).resolve().parents[1], timeout=300)
     assert proc.returncode == 1
-    sam = (f"; and SAM weights (vit_h) are not in the cache {tmp_path / 'cache'} and cannot be downloaded; pass --sam-checkpoint PATH "
-           "to a local SAM checkpoint, or run once with internet access.")
-    assert proc.stderr == (f"ERROR: {OFFLINE_CLIP_MESSAGE.rstrip('.')}{sam}\n" if masks == "sam" else f"ERROR: {OFFLINE_CLIP_MESSAGE}\n")
+    sam = {"sam": (f"; and SAM weights (vit_h) are not in the cache {tmp_path / 'cache'} and cannot be downloaded; pass --sam-checkpoint "
+                   "PATH to a local SAM checkpoint, or run once with internet access."),
+           "sam checkpoint missing": f"; and {tmp_path / 'none.pth'}: SAM checkpoint file does not exist (--sam-checkpoint)",  # round 105a F2
+           "slic": ""}[masks]
+    assert proc.stderr == (f"ERROR: {OFFLINE_CLIP_MESSAGE.rstrip('.')}{sam}\n" if sam else f"ERROR: {OFFLINE_CLIP_MESSAGE}\n"), proc.stderr
     assert not (tmp_path / "f").exists()
 
 

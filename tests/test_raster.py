@@ -847,6 +847,8 @@ def test_every_engine_refuses_a_camera_no_view_can_be_rendered_from_in_one_error
                           opacity_logits=np.full(1, 3.0, np.float32), sh=np.full((1, 1, 3), 0.5, np.float32))
     good = Camera(R=np.eye(3), t=np.zeros(3), fx=30.0, fy=30.0, cx=16.0, cy=12.0, width=32, height=24, name="v1")
     assert raster.rasterize(scene, good, 4).ids[12, 16, 0] == 0
+    whole = dataclasses.replace(good, width=32.0, height=np.int64(24))  # round 105a F3: 32.0 was "not a whole number"
+    assert np.array_equal(raster.rasterize(scene, whole, 4).ids, raster.rasterize(scene, good, 4).ids)
     bad = dataclasses.replace(good, **change)
     for engine in ("numba", "reference", "torch"):
         with pytest.raises(ValueError, match=f"camera 'v1': {words}"):

@@ -34,7 +34,7 @@ from drsplat.utils import CancelToken, file_stamp, npy_header, odd_entry_kind, p
 import drsplat
 from drsplat.cameras import detect_dataset, image_folder, load_cameras, load_image_sized, unobserved_pixels
 from drsplat.features.clip import OPENAI_MEAN, OPENAI_STD, ClipEncoder, use_clip_config
-from drsplat.features.masks.sam import SamParams
+from drsplat.features.masks.sam import SamParams, sam_checkpoint_file_problem
 from drsplat.features.weights import sam_checkpoint_unavailable
 
 log = logging.getLogger(__name__)
@@ -619,14 +619,26 @@ class ModelSpec:
     nms: NmsParams = field(default_factory=NmsParams)
 
 
+def sam_weights_missing(spec: ModelSpec) -> DrsplatError | None:
+    """Why `spec`'s SAM weights cannot be had, found before anything loads, or None (masks that need none, a
+    --sam-checkpoint file, or weights cached or downloadable): a --sam-checkpoint that is no file, or weights neither
+    cached nor downloadable (round 105a F2: a wrong --sam-checkpoint was said only after CLIP had loaded)."""
+    if spec.masks != "sam":
+        return None
+    if spec.sam_checkpoint is None:
+        return sam_checkpoint_unavailable(spec.sam_model)
+    problem = sam_checkpoint_file_problem(Path(spec.sam_checkpoint))
+    return None if problem is None else InputError(Path(spec.sam_checkpoint), problem)
+
+
 def build_models(spec: ModelSpec):
     """(mask generator, CLIP encoder) of `spec`. SAM's weights are looked for (cache, network) before CLIP is built, so
     that a user missing both is told of both in one error (round 104c F1: SAM's absence was said a run later)."""
     use_clip_config(spec.clip_config)
-    sam_missing = sam_checkpoint_unavailable(spec.sam_model) if spec.masks == "sam" and spec.sam_checkpoint is None else None
+    sam_missing = sam_weights_missing(spec)
     try:
         encoder = ClipEncoder(spec.clip_model, spec.pretrained, spec.clip_checkpoint, spec.device, spec.batch_size)
-    except WeightsUnavailableError as clip_missing:
+    except (WeightsUnavailableError, InputError) as clip_missing:  # no weights, or a --clip-checkpoint that is none
         if sam_missing is None:
             raise
         raise WeightsUnavailableError(f"{str(clip_missing).rstrip('.')}; and {sam_missing}") from None

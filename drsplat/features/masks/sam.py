@@ -160,14 +160,22 @@ def build_sam(arch: SamArchitecture):
     return sam.eval()
 
 
+def sam_checkpoint_file_problem(checkpoint: Path) -> str | None:
+    """Why `checkpoint` (--sam-checkpoint) is no checkpoint file, or None: a folder, FIFO or device exists but is none."""
+    if checkpoint.is_file():
+        return None
+    return ("is not a file (--sam-checkpoint): expected a SAM checkpoint file" if checkpoint.exists()
+            else "SAM checkpoint file does not exist (--sam-checkpoint)")
+
+
 def load_sam(checkpoint: str | Path, device: str = "cpu"):
     """SAM model from a checkpoint file; the architecture (vit_b/l/h or smaller) is read off it."""
     import torch
 
     checkpoint = Path(checkpoint)
-    if not checkpoint.is_file():  # a folder, FIFO or device exists but is no checkpoint
-        raise InputError(checkpoint, "is not a file (--sam-checkpoint): expected a SAM checkpoint file" if checkpoint.exists()
-                         else "SAM checkpoint file does not exist (--sam-checkpoint)")
+    problem = sam_checkpoint_file_problem(checkpoint)
+    if problem is not None:
+        raise InputError(checkpoint, problem)
     try:
         with warnings.catch_warnings():  # torch's UserWarning on a pickle protocol its safe unpickler may not read
             warnings.simplefilter("ignore")
