@@ -914,6 +914,9 @@ def render_camera_problem(camera: Camera) -> str | None:
     for name in ("cx", "cy"):
         if not math.isfinite(float(getattr(camera, name))):
             return f"the principal point {name} must be finite, got {getattr(camera, name)!r}"
+    for name in ("R", "t"):  # Camera's properties read them as arrays (.T, @): a nested list failed deep in a render (round 105a F5)
+        if not isinstance(getattr(camera, name), np.ndarray):
+            return f"{name} must be a numpy array, got {type(getattr(camera, name)).__name__}"
     R, t = np.asarray(camera.R, np.float64), np.asarray(camera.t, np.float64)
     if R.shape != (3, 3) or not np.isfinite(R).all() or not is_rotation(R):
         return "R must be a finite [3, 3] rotation (orthonormal, det +1)"

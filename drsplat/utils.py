@@ -766,12 +766,18 @@ def host_reachable(url: str, timeout: float = 3.0) -> bool:
     """Whether the host of `url` resolves and accepts a TCP connection within `timeout` seconds.
 
     Download clients retry with back-off for tens of seconds on a closed network; one cheap
-    probe lets an offline user get the "how to provide weights" message at once.
+    probe lets an offline user get the "how to provide weights" message at once. Where a proxy
+    serves the URL (http_proxy, https_proxy, ... and not no_proxy) the host is only reached through
+    it, which the download does and a direct probe cannot: True, the download decides (round 105a
+    F6: behind a proxy the SAM weights were "cannot be downloaded" without a try).
     """
     import socket
+    import urllib.request
     from urllib.parse import urlparse
 
     parsed = urlparse(url)
+    if parsed.scheme in urllib.request.getproxies() and not urllib.request.proxy_bypass(parsed.hostname or ""):
+        return True
     port = parsed.port or (443 if parsed.scheme == "https" else 80)
     try:
         with socket.create_connection((parsed.hostname or "", port), timeout=timeout):

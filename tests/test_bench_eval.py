@@ -25,10 +25,10 @@ def table_cells(table: str) -> dict[int, list[str]]:
 
 
 def test_voxel_resolution_table_gives_eval_iou_s_voxel_mious_and_their_distance_to_the_finest():
-    table = voxel_resolution_table("tiny", [16, 8], repeats=1)
-    rows = table_cells(table)
-    assert sorted(rows) == [8, 16] and "|Δ| against 16" in table
     syn = make_synthetic("tiny", 0)
+    table = voxel_resolution_table(syn, [16, 8], repeats=1)
+    rows = table_cells(table)
+    assert sorted(rows) == [8, 16] and "|Δ| against 16" in table and "tiny seed 0" in table
     gt = syn.labels.astype(np.int64)
     scores = mislabelled_scores(gt, len(syn.label_names), 0.1, np.random.default_rng(1))
     seen = {}
@@ -40,3 +40,16 @@ def test_voxel_resolution_table_gives_eval_iou_s_voxel_mious_and_their_distance_
     assert rows[16][4] == rows[16][6] == "0.0000"
     assert rows[8][4] == f"{abs(seen[8]['seg'] - seen[16]['seg']):.4f}" and rows[8][6] == f"{abs(seen[8]['loc'] - seen[16]['loc']):.4f}"
     assert 0 < seen[8]["seg"] < 1  # the 10% wrong labels show
+
+
+def test_a_voxel_resolution_past_the_free_memory_is_refused_before_any_table(monkeypatch, capsys):
+    """Round 105a F7: --voxel-resolutions 512 (in the flag's range) needs ~7.2 GiB on hard-room; under a 4 GiB limit the
+    bench printed its first table, then "out of memory". Now one usage error before any work, naming the flag."""
+    import drsplat.memory
+    from drsplat.cli import main
+
+    monkeypatch.setattr(drsplat.memory, "available_memory", lambda: 200_000_000)
+    assert main(["bench", "eval", "--gaussians", "1k", "--points", "1k", "--repeats", "1", "--voxel-resolutions", "32,512"]) == 2
+    out, err = capsys.readouterr()
+    assert "--voxel-resolutions 512: the voxel IoU's grid of " in err and "--voxel-resolutions " in err.split("; ")[-1], err
+    assert "pseudo-labels" not in out  # no table before the refusal

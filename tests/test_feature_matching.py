@@ -256,3 +256,13 @@ def test_two_cameras_naming_one_feature_file_are_said_to_and_not_as_a_case_misma
     assert "both name the feature file 'frame-0_s.npy'" in hint and "ignoring case" not in hint, hint
     sel = pair_views(cameras([(8, 6)], prefix="ORBIT_"), ["orbit_0"])
     assert "camera 'ORBIT_0' and orbit_0_s.npy match ignoring case" in spelling_hint(sel.missing, sel.unmatched)
+
+
+def test_on_a_tie_of_layouts_the_files_not_of_langsplats_four_levels_are_named():
+    """Round 105a: two 3-level and two 4-level files named LangSplat's own 4-level files as the odd ones."""
+    from drsplat.registration.views import level_count_note
+
+    note = level_count_note({"a_s.npy": 3, "b_s.npy": 3, "c_s.npy": 4, "d_s.npy": 4}, 1)
+    assert "(2 views 3: a_s.npy, b_s.npy; 2 views 4)" in note, note
+    note = level_count_note({"a_s.npy": 3, "b_s.npy": 5, "c_s.npy": 5}, 1)  # no 4: the layout more views have
+    assert "(1 view 3: a_s.npy; 2 views 5)" in note, note

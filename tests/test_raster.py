@@ -836,7 +836,8 @@ def test_the_library_refuses_a_near_plane_or_background_it_cannot_render_with():
     ({"cx": float("inf")}, "the principal point cx must be finite, got inf"),
     ({"R": np.full((3, 3), np.nan)}, r"R must be a finite \[3, 3\] rotation"), ({"R": 2 * np.eye(3)}, r"R must be a finite \[3, 3\] rotation"),
     ({"t": np.array([0.0, np.nan, 0.0])}, r"t must be a finite \[3\] translation"),
-], ids=["width 0", "height 2.5", "fx nan", "fx 0", "fy -10", "cx inf", "R nan", "R scaled", "t nan"])
+    ({"R": np.eye(3).tolist()}, "R must be a numpy array, got list"),
+], ids=["width 0", "height 2.5", "fx nan", "fx 0", "fy -10", "cx inf", "R nan", "R scaled", "t nan", "R list"])
 def test_every_engine_refuses_a_camera_no_view_can_be_rendered_from_in_one_error(change, words):
     """Round 104b F2: a camera built in code with width 0, NaN fx, inf cx or NaN R: torch refused it from 15 frames
     deep, numba and the reference drew an empty view (counting every Gaussian non-finite for NaN fx); fx = 0 was a

@@ -15,7 +15,28 @@ from drsplat.utils import (atomic_path, concat_ranges, file_stamp, describe_os_e
                            temp_beside)
 
 
-def test_host_reachable_on_loopback():
+PROXY_VARIABLES = ("http_proxy", "https_proxy", "no_proxy", "all_proxy", "HTTP_PROXY", "HTTPS_PROXY", "NO_PROXY", "ALL_PROXY")
+
+
+def test_a_host_served_by_a_proxy_is_left_to_the_download(monkeypatch):
+    """Round 105a F6: behind an HTTPS proxy the direct probe failed, so weights the download (through the proxy) would
+    fetch were "cannot be downloaded". A URL a proxy serves is not probed; no_proxy hosts and other schemes are."""
+    import socket
+
+    for name in PROXY_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("https_proxy", "http://proxy.invalid:3128")
+    monkeypatch.setenv("no_proxy", "internal.invalid")
+    probed = []
+    monkeypatch.setattr(socket, "create_connection", lambda address, timeout=None: probed.append(address) or (_ for _ in ()).throw(OSError("no route")))
+    assert host_reachable("https://dl.fbaipublicfiles.com/segment_anything/sam_vit_h_4b8939.pth") and not probed
+    assert not host_reachable("https://internal.invalid/x") and probed == [("internal.invalid", 443)]
+    assert not host_reachable("http://plain.invalid/x") and probed[-1] == ("plain.invalid", 80)  # no http_proxy
+
+
+def test_host_reachable_on_loopback(monkeypatch):
+    for name in PROXY_VARIABLES:  # a machine's proxy would take these URLs from the probe
+        monkeypatch.delenv(name, raising=False)
     server = socket.socket()
     server.bind(("127.0.0.1", 0))
     server.listen(1)

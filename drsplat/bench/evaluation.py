@@ -62,9 +62,15 @@ def labelled_points(means: np.ndarray, p: int, rng: np.random.Generator) -> tupl
 
 
 def run(args: argparse.Namespace) -> int:
+    from drsplat.commands.eval import check_voxel_memory
     from drsplat.eval.metrics import VoxelGrid, splat_mass, splat_mass_reference, threshold_iou_curve, weighted_iou
+    from drsplat.synthetic import make_synthetic
     from drsplat.eval.pseudolabels import pseudo_labels, pseudo_labels_reference
 
+    voxel_room = make_synthetic(args.voxel_preset, 0)
+    # before any work (round 105a F7: 512 on hard-room, 7.2 GiB, ended the run in "out of memory" after the first table)
+    check_voxel_memory(max(args.voxel_resolutions), voxel_room.scene, voxel_room.labels >= 0, len(voxel_room.label_names), True,
+                       flag="--voxel-resolutions")
     rng = np.random.default_rng(0)
     if args.scene is not None:
         from drsplat.scene import load_ply
@@ -129,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
 
     print(format_table(["kernel", "reference s", "drsplat s", "speed-up", "accuracy"], rows))
     print()
-    print(voxel_resolution_table(args.voxel_preset, args.voxel_resolutions, args.repeats))
+    print(voxel_resolution_table(voxel_room, args.voxel_resolutions, args.repeats))
     return 0
 
 
@@ -145,17 +151,15 @@ def mislabelled_scores(gt: np.ndarray, num_labels: int, share: float, rng: np.ra
     return scores
 
 
-def voxel_resolution_table(preset: str, resolutions: list[int], repeats: int) -> str:
+def voxel_resolution_table(syn, resolutions: list[int], repeats: int) -> str:
     """Speed against error of the voxel IoU's grid: on a synthetic room's exact labels, a prediction with
     VOXEL_BENCH_MISLABEL of them wrong, scored at each resolution (the segmentation and the localisation at the τ
     of the volume-aware search, as `eval iou --weighting voxel` does); the error column is each resolution's
     |ΔmIoU| against the finest one asked. The empty threshold is a mass per voxel (VOXEL_EMPTY), so the occupied
-    set itself changes with the resolution: the finest grid is a reference, not the exact continuum."""
+    set itself changes with the resolution: the finest grid is a reference, not the exact continuum. syn: the room
+    (`synthetic.make_synthetic`)."""
     from drsplat.eval.metrics import (VoxelSetup, localisation_report, scene_weights, segmentation_report, voxel_iou_bytes, voxel_localisation_report,
                                       voxel_segmentation_report)
-    from drsplat.synthetic import make_synthetic
-
-    syn = make_synthetic(preset, 0)
     gt = syn.labels.astype(np.int64)
     names = list(syn.label_names)
     scores = mislabelled_scores(gt, len(names), VOXEL_BENCH_MISLABEL, np.random.default_rng(1))
@@ -174,7 +178,7 @@ def voxel_resolution_table(preset: str, resolutions: list[int], repeats: int) ->
     _, seg_ref, loc_ref, _ = measured[finest]
     rows = [[r, t, f"{grid_bytes / 2**20:.1f}", f"{seg:.4f}", f"{abs(seg - seg_ref):.4f}", f"{loc:.4f}", f"{abs(loc - loc_ref):.4f}"]
             for r, (t, seg, loc, grid_bytes) in measured.items()]
-    title = (f"voxel IoU against its grid: {preset} seed 0, {syn.scene.num_gaussians} Gaussians, {len(names)} labels, the exact labels with "
+    title = (f"voxel IoU against its grid: {syn.preset} seed {syn.seed}, {syn.scene.num_gaussians} Gaussians, {len(names)} labels, the exact labels with "
              f"{VOXEL_BENCH_MISLABEL:.0%} wrong (volume-aware: seg mIoU {float(np.nanmean(seg_volume.iou)):.4f}, loc {float(np.nanmean(loc_volume.iou)):.4f}); "
              f"|Δ| against {finest}, empty below {VOXEL_EMPTY} a voxel")
     return title + "\n" + format_table(["resolution", "s (seg + loc)", "grid MiB", "seg mIoU voxel", "|Δ| seg", "loc mIoU voxel", "|Δ| loc"], rows)

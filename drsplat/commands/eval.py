@@ -529,7 +529,7 @@ def _evaluate_and_write(args, scene, field, gt: np.ndarray, names: list[str], in
 VOXEL_FREE_SHARE = 0.9  # of the free memory, the most a voxel grid may need (the process holds the scene and scores besides)
 
 
-def check_voxel_memory(resolution: int, scene, focus: np.ndarray, num_labels: int, segmentation: bool) -> None:
+def check_voxel_memory(resolution: int, scene, focus: np.ndarray, num_labels: int, segmentation: bool, flag: str = "--voxel-resolution") -> None:
     """A usage error naming --voxel-resolution when the voxel IoU's grid (`VoxelSetup.grid_of`, over the labelled
     Gaussians `focus` [N] bool) would not fit in the free memory (`voxel_iou_bytes`), with the largest resolution that
     does (round 89c F3: 2048, within the flag's range, grew to 20 GB on a room of 2,763 Gaussians and ended in "out of
@@ -546,9 +546,9 @@ def check_voxel_memory(resolution: int, scene, focus: np.ndarray, num_labels: in
         fits = max(1, min(fits - 1, int(fits * (room / held) ** (1 / 3))))
     nx, ny, nz = grid.shape
     labels = counted(num_labels, "label", "labels") if segmentation else "one label at a time"
-    raise UsageError(f"--voxel-resolution {resolution}: the voxel IoU's grid of {nx}x{ny}x{nz} voxels for {labels} "
+    raise UsageError(f"{flag} {resolution}: the voxel IoU's grid of {nx}x{ny}x{nz} voxels for {labels} "
                      f"needs about {format_size(need)}, more than {VOXEL_FREE_SHARE:.0%} of the {format_size(free)} of memory free; "
-                     f"--voxel-resolution {fits} needs at most half of that")
+                     f"{flag} {fits} needs at most half of that")
 
 
 def print_lines(lines: list[str], stream) -> int:

@@ -370,7 +370,8 @@ def level_count_note(levels: dict[str, int], level: int) -> str | None:
         (count, views), = multi.items()
         return (f"the mask files of {counted(views, 'view', 'views')} have {count} levels, not LangSplat's {len(LEVELS)} ({', '.join(LEVELS)}): "
                 f"level {level} is read as each file's level {level} by index, whatever mask scale it holds there{named}")
-    usual = max(sorted(multi), key=lambda count: multi[count])  # the layout most views have; the others' files are named (round 104a F3)
+    # the layout most views have (LangSplat's on a tie); the others' files are named (round 104a F3)
+    usual = max(sorted(multi), key=lambda count: (multi[count], count == len(LEVELS)))
 
     def layout(count: int, views: int) -> str:
         if count == usual:
