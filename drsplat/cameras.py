@@ -2554,6 +2554,10 @@ def rgb_pixels(path: Path, im) -> np.ndarray:
                 scaled = values
         grey = np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
         return np.repeat(grey[..., None], 3, axis=2)
+    planar = tiff_planes_apart(im)
+    if planar and not all(_raw_mode(t) in LOW_BYTE_RAW_MODES for t in im.tile):  # round 106a F3: garbage, whatever the values
+        raise InputError(path, "is a TIFF of samples wider than 8 bits with its colour planes stored apart (PlanarConfiguration 2), which Pillow "
+                               "reads wrong: save it with its samples interleaved (PlanarConfiguration 1) or as an 8-bit image")
     wide = wide_sample_tiles(im)  # read before decoding: Pillow empties `tile` once it has loaded the pixels
     rgb = np.asarray(_rgb_image(im))
     if wide is not None and not rgb.any():
@@ -2561,7 +2565,24 @@ def rgb_pixels(path: Path, im) -> np.ndarray:
         if low.any():  # round 104a F2, 105b F1 / F2: black as read, it was embedded as black
             log.warning("%s: 16-bit samples all within 0..255, read as 8-bit values (as 16-bit they would be black)", path)
             return low
+        if planar:  # libtiff decodes these, ignoring the raw mode: their low bytes cannot be re-read (round 106a F1)
+            log.warning("%s: a 16-bit TIFF with its colour planes stored apart reads black; if its samples hold 8-bit values, save "
+                        "it with them interleaved (PlanarConfiguration 1) or as an 8-bit image", path)
     return rgb
+
+
+TIFF_PLANAR_CONFIGURATION = 284  # the TIFF tag: 1 samples interleaved, 2 each colour in a plane of its own
+TIFF_BITS_PER_SAMPLE = 258
+
+
+def tiff_planes_apart(im) -> bool:
+    """Whether an open PIL image is a TIFF of samples wider than 8 bits stored in planes (PlanarConfiguration 2): Pillow
+    reads those uncompressed as 8-bit bands (garbage), compressed through libtiff by their high bytes."""
+    if im.format != "TIFF" or not hasattr(im, "tag_v2"):
+        return False
+    bits = im.tag_v2.get(TIFF_BITS_PER_SAMPLE, 8)
+    widest = max(bits) if isinstance(bits, tuple) else bits
+    return im.tag_v2.get(TIFF_PLANAR_CONFIGURATION, 1) == 2 and widest > 8
 
 
 def _rgb_image(im):
@@ -2578,8 +2599,8 @@ _NATIVE_LOW = "B" if sys.byteorder == "little" else "L"  # the raw mode reading 
 # Pillow's raw modes of 16-bit samples that it reads as 8-bit by their high byte -> the raw mode reading the same bytes'
 # other byte, the low one. LA;16B (a grey + alpha PNG) has no such mode: its 4 bytes a pixel read as 8-bit RGBA put the
 # grey sample's low byte in G
-LOW_BYTE_RAW_MODES = {"RGB;16B": "RGB;16L", "RGB;16L": "RGB;16B", "RGB;16N": f"RGB;16{_NATIVE_LOW}",
-                      "RGBA;16B": "RGBA;16L", "RGBA;16L": "RGBA;16B", "RGBA;16N": f"RGBA;16{_NATIVE_LOW}", "LA;16B": "RGBA"}
+LOW_BYTE_RAW_MODES = {"LA;16B": "RGBA", **{f"{bands};16{order}": f"{bands};16{low}" for bands in ("RGB", "RGBA", "RGBX", "RGBa")
+                                             for order, low in (("B", "L"), ("L", "B"), ("N", _NATIVE_LOW))}}
 
 
 def _raw_mode(tile) -> str | None:

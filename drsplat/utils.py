@@ -776,7 +776,8 @@ def host_reachable(url: str, timeout: float = 3.0) -> bool:
     from urllib.parse import urlparse
 
     parsed = urlparse(url)
-    if parsed.scheme in urllib.request.getproxies() and not urllib.request.proxy_bypass(parsed.hostname or ""):
+    proxies = urllib.request.getproxies()  # "all": ALL_PROXY, which huggingface_hub's client honours (round 106a F4)
+    if (parsed.scheme in proxies or "all" in proxies) and not urllib.request.proxy_bypass(parsed.hostname or ""):
         return True
     port = parsed.port or (443 if parsed.scheme == "https" else 80)
     try:

@@ -491,36 +491,53 @@ def png16(path: Path, samples: np.ndarray) -> None:
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
 
 
-def tiff(path: Path, samples: np.ndarray, sample_format: int = 1, byteorder: str = "<") -> None:
-    """A baseline uncompressed TIFF of `samples` [H, W, C] (one strip, chunky), written by hand: Pillow writes no 16-bit
-    colour TIFF. sample_format: 1 unsigned integer, 3 float."""
+def tiff(path: Path, samples: np.ndarray, sample_format: int = 1, byteorder: str = "<", extra: int = 2, planar: bool = False) -> None:
+    """A baseline uncompressed TIFF of `samples` [H, W, C], written by hand: Pillow writes no 16-bit colour TIFF.
+    sample_format: 1 unsigned integer, 3 float; extra: the ExtraSamples value of a 2nd / 4th sample (0 unspecified, 1
+    associated alpha, 2 unassociated alpha); planar: each sample in a plane (strip) of its own (PlanarConfiguration 2),
+    else interleaved in one strip."""
     import struct
 
     h, w, c = samples.shape
-    data = samples.astype(samples.dtype.newbyteorder(byteorder)).tobytes()
+    ordered = samples.astype(samples.dtype.newbyteorder(byteorder))
+    planes = [ordered[..., i].tobytes() for i in range(c)] if planar else [ordered.tobytes()]
     bits = samples.dtype.itemsize * 8
-    entries = [(256, 3, 1, w), (257, 3, 1, h), (258, 3, c, None), (259, 3, 1, 1), (262, 3, 1, 2 if c >= 3 else 1), (273, 4, 1, None),
-               (277, 3, 1, c), (278, 3, 1, h), (279, 4, 1, len(data)), (284, 3, 1, 1), (339, 3, c, None)]
+    strips = len(planes)
+    entries = [(256, 3, 1, w), (257, 3, 1, h), (258, 3, c, "bits"), (259, 3, 1, 1), (262, 3, 1, 2 if c >= 3 else 1), (273, 4, strips, "offsets"),
+               (277, 3, 1, c), (278, 3, 1, h), (279, 4, strips, "counts"), (284, 3, 1, 2 if planar else 1), (339, 3, c, "formats")]
     if c in (2, 4):
-        entries.append((338, 3, 1, 2))  # ExtraSamples: unassociated alpha
+        entries.append((338, 3, 1, extra))
     entries.sort()
-    ifd_at = 8
-    extra_at = ifd_at + 2 + 12 * len(entries) + 4
-    bits_at, format_at = extra_at, extra_at + 2 * c
-    data_at = format_at + 2 * c
+    after_ifd = 8 + 2 + 12 * len(entries) + 4
+    arrays = {"bits": struct.pack(byteorder + f"{c}H", *[bits] * c), "formats": struct.pack(byteorder + f"{c}H", *[sample_format] * c)}
+    inline_arrays = {name: arrays.pop(name) for name in ("bits", "formats") if c <= 2}  # two SHORTs fit in the entry itself
+    data_at = after_ifd + sum(len(v) for v in arrays.values()) + (8 * strips if strips > 1 else 0)
+    starts = [data_at + sum(len(q) for q in planes[:i]) for i in range(strips)]
+    if strips > 1:
+        arrays["offsets"] = struct.pack(byteorder + f"{strips}I", *starts)
+        arrays["counts"] = struct.pack(byteorder + f"{strips}I", *[len(q) for q in planes])
+    where, at = {}, after_ifd
+    for name, packed in arrays.items():
+        where[name], at = at, at + len(packed)
     ifd = struct.pack(byteorder + "H", len(entries))
     for tag, kind, count, value in entries:
-        value = {258: bits_at, 339: format_at, 273: data_at}.get(tag, value) if value is None or tag == 273 else value
+        if value == "offsets" and strips == 1:
+            value = starts[0]
+        elif value == "counts" and strips == 1:
+            value = len(planes[0])
+        elif value in inline_arrays:
+            ifd += struct.pack(byteorder + "HHI", tag, kind, count) + inline_arrays[value].ljust(4, b"\x00")
+            continue
+        elif isinstance(value, str):
+            value = where[value]
         inline = count * (2 if kind == 3 else 4) <= 4
-        packed = struct.pack(byteorder + ("H2x" if kind == 3 else "I"), value) if inline else struct.pack(byteorder + "I", value)
-        ifd += struct.pack(byteorder + "HHI", tag, kind, count) + packed
+        ifd += struct.pack(byteorder + "HHI", tag, kind, count) + struct.pack(byteorder + ("H2x" if kind == 3 and inline else "I"), value)
     ifd += struct.pack(byteorder + "I", 0)
-    head = (b"II*\x00" if byteorder == "<" else b"MM\x00*") + struct.pack(byteorder + "I", ifd_at)
-    tail = struct.pack(byteorder + f"{c}H", *[bits] * c) + struct.pack(byteorder + f"{c}H", *[sample_format] * c)
-    path.write_bytes(head + ifd + tail + data)
+    head = (b"II*\x00" if byteorder == "<" else b"MM\x00*") + struct.pack(byteorder + "I", 8)
+    path.write_bytes(head + ifd + b"".join(arrays.values()) + b"".join(planes))
 
 
-@pytest.mark.parametrize("kind", ["rgb", "rgba", "grey alpha", "tiff rgb", "tiff rgb big-endian"])
+@pytest.mark.parametrize("kind", ["rgb", "rgba", "grey alpha", "tiff rgb", "tiff rgb big-endian", "tiff rgbx", "tiff rgba associated"])
 def test_load_image_reads_8_bit_values_in_16_bit_colour_as_8_bit_and_says_so(tmp_path, caplog, kind):
     """Round 104a F2, 105b F1 / F2: Pillow opens a 16-bit RGB(A) PNG or TIFF, or a 16-bit grey + alpha PNG, as 8-bit,
     keeping each sample's high byte, so an 8-bit photo widened to uint16 and saved read as a black image, with no word
@@ -534,7 +551,8 @@ def test_load_image_reads_8_bit_values_in_16_bit_colour_as_8_bit_and_says_so(tmp
     if kind == "grey alpha":
         photo = np.repeat(photo[..., :1], 3, axis=2)
     opaque = np.full((48, 64, 1), 255, np.uint16)
-    samples = {"rgb": photo, "rgba": np.concatenate([photo, opaque], axis=2), "grey alpha": np.concatenate([photo[..., :1], opaque], axis=2)}.get(kind, photo)
+    samples = {"rgb": photo, "rgba": np.concatenate([photo, opaque], axis=2), "grey alpha": np.concatenate([photo[..., :1], opaque], axis=2),
+               "tiff rgbx": np.concatenate([photo, opaque], axis=2), "tiff rgba associated": np.concatenate([photo, opaque], axis=2)}.get(kind, photo)
     suffix = ".tif" if kind.startswith("tiff") else ".png"
     placeholder = np.zeros((48, 64), np.float32) if suffix == ".tif" else np.zeros((48, 64, 3), np.uint8)  # a float image is saved as TIFF
     cam = load_cameras(_one_camera_dataset(tmp_path / "c", Image.fromarray(placeholder)))[0]
@@ -544,7 +562,8 @@ def test_load_image_reads_8_bit_values_in_16_bit_colour_as_8_bit_and_says_so(tmp
         if suffix == ".png":
             png16(cam.image_path, values)
         else:
-            tiff(cam.image_path, values, byteorder=">" if "big" in kind else "<")
+            # round 106a F2: an extra sample unspecified (RGBX) or associated alpha (RGBa) read black
+            tiff(cam.image_path, values, byteorder=">" if "big" in kind else "<", extra=0 if "rgbx" in kind else 1 if "associated" in kind else 2)
 
     write(samples)
     with caplog.at_level(logging.WARNING, logger="drsplat.cameras"):
@@ -579,6 +598,12 @@ def test_load_image_names_a_tiff_pillow_cannot_decode_and_takes_a_transparent_pa
     tiff(cam.image_path, np.full((48, 64, 3), 0.5, np.float32), sample_format=3)
     with pytest.raises(InputError, match=r"view.tif: is a TIFF of a sample layout Pillow cannot decode .* save it as an 8- or 16-bit RGB image"):
         load_image(cam)
+    # round 106a F3: an uncompressed 16-bit TIFF with its colour planes apart, which Pillow reads as 8-bit bands (garbage)
+    tiff(cam.image_path, np.full((48, 64, 3), 40000, np.uint16), planar=True)
+    with pytest.raises(InputError, match=r"view.tif: is a TIFF of samples wider than 8 bits with its colour planes stored apart"):
+        load_image(cam)
+    tiff(cam.image_path, np.full((48, 64, 3), 200, np.uint8), planar=True)  # 8-bit planes Pillow reads right
+    assert (load_image(cam) == 200).all()
 
 
 def test_load_image_refuses_an_image_of_another_aspect_and_names_exif_rotation(tmp_path):

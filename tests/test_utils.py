@@ -32,6 +32,8 @@ def test_a_host_served_by_a_proxy_is_left_to_the_download(monkeypatch):
     assert host_reachable("https://dl.fbaipublicfiles.com/segment_anything/sam_vit_h_4b8939.pth") and not probed
     assert not host_reachable("https://internal.invalid/x") and probed == [("internal.invalid", 443)]
     assert not host_reachable("http://plain.invalid/x") and probed[-1] == ("plain.invalid", 80)  # no http_proxy
+    monkeypatch.setenv("ALL_PROXY", "socks5://proxy.invalid:1080")  # round 106a F4: ALL_PROXY alone was probed past
+    assert host_reachable("http://plain.invalid/x") and probed[-1] == ("plain.invalid", 80)
 
 
 def test_host_reachable_on_loopback(monkeypatch):
