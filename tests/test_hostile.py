@@ -2746,6 +2746,15 @@ def test_round_8_scene_files_across_commands(tmp_path, world, capsys):
     state = ViewerState()
     assert state.load_scene(ds / "scene.ply") and state.load_source(ds)
     assert not state.start_registration(tmp_path / "v.splat") and "a registered scene is a PLY" in state.messages[-1].text
+    # round 107b F1: the Register button wrote a PLY over a dataset's gt/labels.npy (`register --out` refused the name)
+    gt = tmp_path / "gt"
+    gt.mkdir()
+    (gt / "labels.npy").write_bytes(b"labels")
+    for name in ("labels.npy", "cameras.json", "view.png"):
+        assert not state.start_registration(gt / name), name
+        assert state.messages[-1].text == f"{name}: a {Path(name).suffix} name is another kind of file (a dataset's arrays, cameras, " \
+            "images or a codebook), and a registered scene is a PLY: name it .ply", state.messages[-1].text
+    assert (gt / "labels.npy").read_bytes() == b"labels" and state.registration is None
 
     for version in (3, 4):
         save_scene(scene, tmp_path / f"v{version}.spz", spz_version=version)

@@ -30,7 +30,7 @@ from drsplat.device import resolve_device, resolve_engine
 from drsplat.errors import DrsplatError, InputError, WeightsUnavailableError, hidden_character, one_line
 from drsplat.features.clip import ClipEncoder, unsupported_model_name, use_clip_config  # imports open_clip/torch only when an encoder is built
 from drsplat.features.modelid import DEFAULT_MODEL, DEFAULT_PRETRAINED, clip_weights_problem, is_oracle, named_model
-from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_problem, export_scene, read_field, written_codebook_path
+from drsplat.lang import REGISTERED_IS_PLY, export_kind, export_problem, export_scene, other_data_name, read_field, written_codebook_path
 from drsplat.query import load_query_embeddings, otsu_split_problem, otsu_threshold, select, threshold_digits
 from drsplat.raster import prepare_scene, rasterize
 from drsplat.registration import RegisterOptions
@@ -871,6 +871,10 @@ class ViewerState:
             return False
         if written_format(output) != "ply":
             self.error(f"{Path(output).name}: {REGISTERED_IS_PLY}; name it .ply")
+            return False
+        other = other_data_name(output)
+        if other is not None:  # round 107b F1: a PLY was written over the dataset's gt/labels.npy
+            self.error(other)
             return False
         if not self.guard_output(output, "the registration's output"):  # never over the scene, its dataset or features
             return False

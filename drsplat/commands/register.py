@@ -85,23 +85,11 @@ def interrupted_note(args: argparse.Namespace, exc: BaseException | None = None)
     return f"{INTERRUPTED_NOTE}; the registration checkpoint {shown_path(checkpoint)} is kept, and the same command resumes from it"
 
 
-OTHER_DATA_SUFFIXES = {".npy", ".npz", ".json", ".jsonl", ".txt", ".bin", ".db", ".faiss", ".csv", ".yml", ".yaml", ".pt", ".pth",
-                       ".ckpt"}  # names of what a dataset or a features folder holds (and its images): a PLY written under one is a mix-up
-
-
-def other_data_suffix(path: Path) -> bool:
-    """Whether `path` is named as another kind of data than a PLY (OTHER_DATA_SUFFIXES or an image's, in any case)."""
-    from drsplat.cameras import IMAGE_SUFFIXES
-
-    suffix = path.suffix.lower()
-    return suffix in OTHER_DATA_SUFFIXES or suffix in {s.lower() for s in IMAGE_SUFFIXES}
-
-
 def run(args: argparse.Namespace) -> int:
     from drsplat.cameras import dataset_inputs, load_cameras
     from drsplat.cluster import LOCAL_ADDRESSES, check_reachable
     from drsplat.errors import InputError, UsageError
-    from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, written_codebook_path
+    from drsplat.lang import REGISTERED_IS_PLY, codebook_name_for, header_text_problem, other_data_name, written_codebook_path
     from drsplat.registration import RegisterOptions
     from drsplat.registration.checkpoint import checkpoint_path_for, lock_run
     from drsplat.splat_formats import written_format
@@ -138,9 +126,9 @@ def run(args: argparse.Namespace) -> int:
     for written in (args.out, written_codebook):
         if written is not None:
             refuse_write_protected(output_target(written))
-    if other_data_suffix(args.out):  # after the input guard, whose message names the input it would hit
-        raise UsageError(f"--out {args.out.name}: a {args.out.suffix} name is another kind of file (a dataset's arrays, cameras, "
-                         "images or a codebook), and a registered scene is a PLY: name it .ply")
+    other = other_data_name(args.out)
+    if other is not None:  # after the input guard, whose message names the input it would hit
+        raise UsageError(f"--out {other}")
     # a second run into --out is refused before the scene is read (round 67b F1: after 21 s and 1.5 GB of a 3M scene and the
     # near plane's decision), and the lock is held from here to the registration's end (round 68a F1: taken and released, it
     # let a second run through while the first read its scene); no folder, no run in it: the registration makes the folder

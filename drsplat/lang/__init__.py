@@ -48,6 +48,7 @@ from drsplat.lang.plyformat import (
     is_meta_column,
     export_kind,
     export_problem,
+    other_data_name,
     export_scene,
     field_comment,
     field_extras,
@@ -62,7 +63,7 @@ from drsplat.lang.plyformat import (
 )
 
 __all__ = [
-    "BACKENDS", "COMMENT_PREFIX", "EXPORT_FORMATS", "EXPORT_FORMAT_HELP", "META_PROPERTY", "REGISTERED_IS_PLY", "decode_meta_column", "encode_meta_column", "encode_meta_columns", "is_meta_column", "export_kind", "export_problem", "export_scene", "field_metadata", "standard_scene", "ExactStorage", "KINDS", "PQStorage", "PQ_BITS", "PQ_KSUB", "Q8_BLOCK", "Codebook", "LanguageField", "attach_field",
+    "BACKENDS", "COMMENT_PREFIX", "EXPORT_FORMATS", "EXPORT_FORMAT_HELP", "META_PROPERTY", "REGISTERED_IS_PLY", "decode_meta_column", "encode_meta_column", "encode_meta_columns", "is_meta_column", "export_kind", "export_problem", "export_scene", "other_data_name", "field_metadata", "standard_scene", "ExactStorage", "KINDS", "PQStorage", "PQ_BITS", "PQ_KSUB", "Q8_BLOCK", "Codebook", "LanguageField", "attach_field",
     "blocked_codes", "build_field", "codebook_from_index", "codebook_name_for", "codebook_path_for", "f32_sums",
     "field_comment", "field_extras", "half_scores", "header_text_problem", "has_direction", "inverse_norms", "is_lang_property", "load_codebook",
     "lut_scores", "lut_scores_blocked", "lut_scores_q8_reference", "lut_scores_reference", "parse_field_comment",

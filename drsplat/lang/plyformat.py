@@ -568,6 +568,24 @@ REGISTERED_IS_PLY = ("a registered scene is a PLY: its language field lives in t
 EXPORT_SUFFIXES = ("", ".ply", ".splat", ".spz")  # no suffix: a device or FIFO (/dev/stdout), written as a PLY
 
 
+OTHER_DATA_SUFFIXES = {".npy", ".npz", ".json", ".jsonl", ".txt", ".bin", ".db", ".faiss", ".csv", ".yml", ".yaml", ".pt", ".pth",
+                       ".ckpt"}  # names of what a dataset or a features folder holds (and its images): a PLY written under one is a mix-up
+
+
+def other_data_name(path: str | Path) -> str | None:
+    """Why a registered scene cannot be written to `path`, named as another kind of data than a PLY
+    (OTHER_DATA_SUFFIXES or an image's, in any case), or None: `register --out` and the viewer's Register
+    button alike (round 107b F1: the viewer wrote a PLY over a dataset's gt/labels.npy)."""
+    from drsplat.cameras import IMAGE_SUFFIXES
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in OTHER_DATA_SUFFIXES and suffix not in {s.lower() for s in IMAGE_SUFFIXES}:
+        return None
+    return (f"{path.name}: a {path.suffix} name is another kind of file (a dataset's arrays, cameras, images or a codebook), and a "
+            "registered scene is a PLY: name it .ply")
+
+
 def export_problem(path: str | Path, fmt: str) -> str | None:
     """Why `path` cannot take an export in format `fmt`, or None: a drsplat export is a PLY (the
     field lives in its vertex properties), so it refuses a .splat, .spz or .compressed.ply name; any
