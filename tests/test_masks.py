@@ -231,6 +231,7 @@ def test_sam_offline_message(monkeypatch, tmp_path):
         raise urllib.error.URLError("Temporary failure in name resolution")
 
     monkeypatch.setattr(urllib.request, "urlopen", no_network)
+    monkeypatch.setattr("drsplat.features.weights.host_reachable", lambda url, timeout=3.0: True)  # the probe passes, the download fails
     with pytest.raises(WeightsUnavailableError) as err:
         resolve_sam_checkpoint("vit_h")
     assert str(err.value) == expected and err.value.__suppress_context__
