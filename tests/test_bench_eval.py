@@ -45,7 +45,9 @@ def test_voxel_resolution_table_gives_eval_iou_s_voxel_mious_and_their_distance_
 def test_a_voxel_resolution_past_the_free_memory_is_refused_before_any_table(monkeypatch, capsys):
     """Round 105a F7: --voxel-resolutions 512 (in the flag's range) needs ~7.2 GiB on hard-room; under a 4 GiB limit the
     bench printed its first table, then "out of memory". Now one usage error before any work, naming the flag."""
+    import drsplat.eval.langsplat  # noqa: F401  imported before the patch: modules that bind available_memory at import
     import drsplat.memory
+    import drsplat.registration.plan  # noqa: F401  would keep the fake for every later test of the process
     from drsplat.cli import main
 
     monkeypatch.setattr(drsplat.memory, "available_memory", lambda: 200_000_000)

@@ -629,7 +629,9 @@ def test_eval_iou_voxel_grid_past_the_free_memory_is_a_usage_error(registered, c
     """Round 89c F3: --voxel-resolution 2048, within the flag's range, grew to 20 GB on a room of 2,763 Gaussians and
     ended in "out of memory: the input is larger than this machine can hold". Now one usage error before the grid,
     naming the flag and a resolution that needs at most half of the memory free."""
+    import drsplat.eval.langsplat  # noqa: F401  imported before the patch: modules that bind available_memory at import
     import drsplat.memory
+    import drsplat.registration.plan  # noqa: F401  would keep the fake for every later test of the process
     from drsplat.eval.metrics import VoxelSetup, voxel_iou_bytes
     from drsplat.scene import load_ply
 

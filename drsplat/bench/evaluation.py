@@ -20,6 +20,7 @@ import numpy as np
 
 from drsplat.bench.common import MAX_BENCH_GAUSSIANS, count_upto, format_table, gaussian_count, int_list, machine_line, median_seconds
 from drsplat.commands.common import int_range, positive_int
+from drsplat.commands.eval import check_voxel_memory
 from drsplat.defaults import VOXEL_EMPTY, VOXEL_RESOLUTION
 
 VOXEL_BENCH_RESOLUTIONS = "32,64,96,192"
@@ -62,7 +63,6 @@ def labelled_points(means: np.ndarray, p: int, rng: np.random.Generator) -> tupl
 
 
 def run(args: argparse.Namespace) -> int:
-    from drsplat.commands.eval import check_voxel_memory
     from drsplat.eval.metrics import VoxelGrid, splat_mass, splat_mass_reference, threshold_iou_curve, weighted_iou
     from drsplat.synthetic import make_synthetic
     from drsplat.eval.pseudolabels import pseudo_labels, pseudo_labels_reference

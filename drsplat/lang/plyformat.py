@@ -36,6 +36,7 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
+from drsplat.cameras import IMAGE_SUFFIXES
 from drsplat.errors import InputError, OutputError, hidden_character, shown_path
 from drsplat.features.modelid import WEIGHTS_DIGEST
 from drsplat.lang.backends import BACKENDS, needs_codebook
@@ -576,8 +577,6 @@ def other_data_name(path: str | Path) -> str | None:
     """Why a registered scene cannot be written to `path`, named as another kind of data than a PLY
     (OTHER_DATA_SUFFIXES or an image's, in any case), or None: `register --out` and the viewer's Register
     button alike (round 107b F1: the viewer wrote a PLY over a dataset's gt/labels.npy)."""
-    from drsplat.cameras import IMAGE_SUFFIXES
-
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in OTHER_DATA_SUFFIXES and suffix not in {s.lower() for s in IMAGE_SUFFIXES}:
