@@ -2586,13 +2586,15 @@ def tiff_planes_apart(im) -> bool:
 
 
 def _rgb_image(im):
-    """An open PIL image as RGB. A palette with transparency goes through RGBA (the same colours): converted to RGB
-    directly, Pillow warns that it "should be converted to RGBA", which drsplat logged once an image (round 105b F3)."""
+    """An open PIL image as RGB. A palette with transparency is converted as any image, without Pillow's warning that it
+    "should be converted to RGBA", which drsplat logged once an image (round 105b F3): the alpha is dropped either way.
+    (Through RGBA, a tRNS chunk longer than 256 entries, which libpng ignores, was a "palette index out of range"
+    error: round 107a F1.)"""
     if im.mode == "RGB":
         return im
-    if im.mode == "P" and "transparency" in im.info:
-        return im.convert("RGBA").convert("RGB")
-    return im.convert("RGB")
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Palette images with Transparency", category=UserWarning)
+        return im.convert("RGB")
 
 
 _NATIVE_LOW = "B" if sys.byteorder == "little" else "L"  # the raw mode reading the other byte of a native-order ("N") sample

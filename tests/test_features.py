@@ -595,6 +595,20 @@ def test_load_image_names_a_tiff_pillow_cannot_decode_and_takes_a_transparent_pa
         rgb = load_image(cam)
     assert np.array_equal(rgb, np.asarray(Image.open(cam.image_path).convert("RGB"))) and not caplog.records, caplog.text
     cam = load_cameras(_one_camera_dataset(tmp_path / "f", Image.fromarray(np.zeros((48, 64), np.float32))))[0]
+    # round 107a F1: a tRNS chunk longer than the 256 palette entries (libpng ignores the rest) was "palette index out of range"
+    import struct
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    indices = np.tile(np.arange(64, dtype=np.uint8), (48, 1))
+    colours = np.random.default_rng(1).integers(0, 256, (256, 3), dtype=np.uint8)
+    long_trns = load_cameras(_one_camera_dataset(tmp_path / "t", Image.fromarray(np.zeros((48, 64, 3), np.uint8))))[0]
+    long_trns.image_path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 64, 48, 8, 3, 0, 0, 0)) + chunk(b"PLTE", colours.tobytes())
+                               + chunk(b"tRNS", bytes(range(256)) + b"\x00") + chunk(b"IDAT", zlib.compress(b"".join(b"\x00" + r.tobytes() for r in indices)))
+                               + chunk(b"IEND", b""))
+    with caplog.at_level(logging.WARNING):
+        assert np.array_equal(load_image(long_trns), colours[indices]) and not caplog.records, caplog.text
     tiff(cam.image_path, np.full((48, 64, 3), 0.5, np.float32), sample_format=3)
     with pytest.raises(InputError, match=r"view.tif: is a TIFF of a sample layout Pillow cannot decode .* save it as an 8- or 16-bit RGB image"):
         load_image(cam)
