@@ -872,11 +872,11 @@ class ViewerState:
         if written_format(output) != "ply":
             self.error(f"{Path(output).name}: {REGISTERED_IS_PLY}; name it .ply")
             return False
-        other = other_data_name(output)
-        if other is not None:  # round 107b F1: a PLY was written over the dataset's gt/labels.npy
-            self.error(other)
-            return False
         if not self.guard_output(output, "the registration's output"):  # never over the scene, its dataset or features
+            return False
+        other = other_data_name(output)
+        if other is not None:  # after the input guard, as `register --out` (round 107b F1: a PLY over the dataset's gt/labels.npy)
+            self.error(other)
             return False
         try:
             check_output_writable(Path(output))  # a read-only folder: now, not after registering every view
