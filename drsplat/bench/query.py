@@ -52,7 +52,7 @@ def add_bench(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--queries", type=positive_int, default=8, help="text queries whose errors are averaged, one class each: at most --labels (default: 8)")
     p.add_argument("--train", type=positive_int, default=5_000, help=f"embeddings used to train the general PQ codebooks, at least {PQ_KSUB} (default: 5000)")
     p.add_argument("--train-sizes", type=count_list, default=None, metavar="SIZES",
-                   help="also train PQ codebooks (M of the first pq backend, 128 without one) on each of these numbers of embeddings, "
+                   help=f"also train PQ codebooks (M of the first pq backend, {SCENE_PQ_M} without one) on each of these numbers of embeddings, "
                         "e.g. 1k,5k,20k, and report the training time beside the scores' error on the first --sizes Gaussians: what "
                         "`pq train --max-train` and the scene codebook's training sample cost (default: not run)")
     p.add_argument("--cache-dir", type=Path, default=None,
@@ -200,10 +200,15 @@ def faiss_search_index(book: Codebook, codes: np.ndarray, list_ids: np.ndarray |
     return index
 
 
+def text_queries(model: EmbeddingModel, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(labels [Q], text embeddings [Q, D]) of `count` queries, one class each (at most the model's classes), drawn from
+    `seed` + 1: the same queries for every table of a run."""
+    labels = np.random.default_rng(seed + 1).choice(model.label_dirs.shape[0], size=min(count, model.label_dirs.shape[0]), replace=False)
+    return labels, model.texts(labels)
+
+
 def bench_size(args: argparse.Namespace, n: int, model: EmbeddingModel, books: dict[str, Codebook], backends: list[str]) -> list[Row]:
-    rng = np.random.default_rng(args.seed + 1)
-    q_labels = rng.choice(model.label_dirs.shape[0], size=args.queries, replace=False)
-    queries = model.texts(q_labels)
+    q_labels, queries = text_queries(model, args.queries, args.seed)
     q1, qb = queries[:1], np.repeat(queries, -(-BATCH // len(queries)), axis=0)[:BATCH]
     keep32 = "float32" in backends and n <= args.max_float32
     f32 = np.empty((n, args.dim), np.float32) if keep32 else None
@@ -292,9 +297,7 @@ def train_sample_table(model: EmbeddingModel, m: int, samples: list[int], n: int
     never sees the scene), its training time beside its scores' error against the exact cosines of `n` Gaussians
     (`errors_against`: mean |Δcos|, Spearman ρ, IoU at each query's threshold): the speed against error of training on
     a sample (`pq train --max-train`, the scene codebook's sample of rows)."""
-    rng = np.random.default_rng(seed + 1)
-    q_labels = rng.choice(model.label_dirs.shape[0], size=min(num_queries, model.label_dirs.shape[0]), replace=False)
-    queries = model.texts(q_labels)
+    q_labels, queries = text_queries(model, num_queries, seed)
     x, labels = model.images(n, 0)
     exact = x @ queries.T
     thresholds = localisation_thresholds(exact, labels, q_labels)
